@@ -1,0 +1,514 @@
+//! Quantization of a [`FloatActor`] into a model file, and the model file encoder (std).
+//!
+//! Scheme (TFLite-style, pinned by the golden files):
+//! * **Weights**: symmetric int8 per output channel, `scale_o = max_i |w_oi| / 127`.
+//! * **Input**: affine int8 per feature, scale and zero point from the feature's min and max over
+//!   the calibration observations (range widened to include 0); the per-feature scale is folded
+//!   into the first layer's weights before they are quantized.
+//! * **Activations**: affine int8 per tensor, from the min and max over the calibration set. The
+//!   task input layers share one output quantization (the shared layers must read both tasks'
+//!   hidden vectors with one scale); ReLU layers have their minimum at 0, so their zero point is
+//!   -128. Task output layers are quantized per task before `tanh`, their range clipped to
+//!   `±OUTPUT_CLIP` where `tanh` is flat anyway.
+//! * **Bias**: int32 at scale `input_scale * weight_scale_o`, the input zero points folded in.
+//! * **Requantization**: `input_scale * weight_scale_o / output_scale` as a Q31 multiplier in
+//!   `[2^30, 2^31)` and a right shift, see [`crate::format::requantize`].
+
+use core::fmt;
+
+use crate::Task;
+use crate::float::FloatActor;
+use crate::format::{
+    self, ACTIONS, ACTIVATION_NONE, ACTIVATION_RELU, BIAS_LIMIT, CRC32, FORMAT_VERSION, HEADER_LEN,
+    MAGIC, MAX_FEATURES, MAX_SHARED_LAYERS, MAX_WIDTH,
+};
+
+/// Largest pre-tanh magnitude the output quantization represents (`tanh(4) = 0.9993`).
+pub const OUTPUT_CLIP: f32 = 4.0;
+
+/// What the model file records besides the weights.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ModelMeta {
+    /// Version of the observation encoder the actor was trained with
+    /// (`skyherd_onboard::obs::ENCODER_VERSION`).
+    pub encoder_version: u16,
+    /// Speed in m/s that a normalised action of 1 stands for.
+    pub max_speed: f32,
+}
+
+/// Why an actor could not be quantized.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum QuantizeError {
+    /// The layers do not chain into the Fig. 2 architecture.
+    Shape,
+    /// A width or count is zero or beyond the inference core's capacity.
+    Capacity {
+        /// Which field.
+        field: &'static str,
+        /// Its value.
+        value: usize,
+        /// The largest value accepted.
+        max: usize,
+    },
+    /// No calibration observations were given.
+    NoCalibration,
+    /// A calibration observation has the wrong length.
+    CalibrationLength {
+        /// Features the actor takes.
+        expected: usize,
+        /// Length found.
+        found: usize,
+    },
+    /// A weight, bias, calibration value or the max speed is NaN or infinite (or the speed not
+    /// positive).
+    NonFinite,
+    /// A bias does not fit the int32 range the inference core is proven for.
+    BiasOverflow,
+    /// A requantization multiplier is too large to represent (a degenerate scale).
+    Multiplier,
+}
+
+impl fmt::Display for QuantizeError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match *self {
+            QuantizeError::Shape => f.write_str("actor layers do not chain into F->H, H->H, H->3"),
+            QuantizeError::Capacity { field, value, max } => {
+                write!(f, "{field} = {value} is outside 1..={max}")
+            }
+            QuantizeError::NoCalibration => f.write_str("no calibration observations"),
+            QuantizeError::CalibrationLength { expected, found } => write!(
+                f,
+                "calibration observation has {found} features, the actor takes {expected}"
+            ),
+            QuantizeError::NonFinite => {
+                f.write_str("NaN or infinity in weights, calibration data or max speed")
+            }
+            QuantizeError::BiasOverflow => f.write_str("a quantized bias exceeds 2^30"),
+            QuantizeError::Multiplier => f.write_str("a requantization multiplier exceeds 2^30"),
+        }
+    }
+}
+
+impl std::error::Error for QuantizeError {}
+
+/// One quantized dense layer, ready to be written.
+#[derive(Clone, Debug, PartialEq)]
+pub struct QuantizedLayer {
+    /// Input width.
+    pub inputs: usize,
+    /// Output width.
+    pub outputs: usize,
+    /// ReLU fused into the output clamp.
+    pub relu: bool,
+    /// Output zero point.
+    pub output_zero_point: i8,
+    /// Output scale.
+    pub output_scale: f32,
+    /// Weights, row-major `[out][in]`.
+    pub weights: Vec<i8>,
+    /// Per-output-channel weight scale.
+    pub weight_scales: Vec<f32>,
+    /// Bias (input zero point folded in).
+    pub bias: Vec<i32>,
+    /// Requantization multiplier per output channel.
+    pub multiplier: Vec<i32>,
+    /// Requantization right shift per output channel.
+    pub shift: Vec<u8>,
+}
+
+/// A quantized actor: everything a model file holds, as owned values.
+#[derive(Clone, Debug, PartialEq)]
+pub struct QuantizedModel {
+    /// Encoder version and max speed.
+    pub meta: ModelMeta,
+    /// Hidden width.
+    pub hidden: usize,
+    /// Per-feature input scale.
+    pub input_scales: Vec<f32>,
+    /// Per-feature input zero point.
+    pub input_zero_points: Vec<i8>,
+    /// Layers in file order: task inputs, shared, task outputs.
+    pub layers: Vec<QuantizedLayer>,
+}
+
+impl QuantizedModel {
+    /// The model file bytes (layout in [`crate::format`]). Does not validate; [`format::decode`]
+    /// does.
+    pub fn to_bytes(&self) -> Vec<u8> {
+        let features = self.input_scales.len();
+        let shared_layers = self.layers.len().saturating_sub(2 * Task::COUNT);
+        let mut out = Vec::with_capacity(format::file_len(features, self.hidden, shared_layers));
+        out.extend_from_slice(&MAGIC);
+        out.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
+        out.extend_from_slice(&(HEADER_LEN as u16).to_le_bytes());
+        out.extend_from_slice(&0u32.to_le_bytes()); // file length, patched below
+        out.extend_from_slice(&self.meta.encoder_version.to_le_bytes());
+        out.extend_from_slice(&(features as u16).to_le_bytes());
+        out.extend_from_slice(&(self.hidden as u16).to_le_bytes());
+        out.push(Task::COUNT as u8);
+        out.push(shared_layers as u8);
+        out.push(ACTIONS as u8);
+        out.push(0);
+        out.extend_from_slice(&0u16.to_le_bytes());
+        out.extend_from_slice(&self.meta.max_speed.to_le_bytes());
+        out.extend_from_slice(&0u32.to_le_bytes());
+        debug_assert_eq!(out.len(), HEADER_LEN);
+        self.input_scales
+            .iter()
+            .for_each(|s| out.extend_from_slice(&s.to_le_bytes()));
+        out.extend(self.input_zero_points.iter().map(|&z| z as u8));
+        for layer in &self.layers {
+            out.extend_from_slice(&(layer.inputs as u16).to_le_bytes());
+            out.extend_from_slice(&(layer.outputs as u16).to_le_bytes());
+            out.push(if layer.relu {
+                ACTIVATION_RELU
+            } else {
+                ACTIVATION_NONE
+            });
+            out.push(0);
+            out.push(layer.output_zero_point as u8);
+            out.push(0);
+            out.extend_from_slice(&layer.output_scale.to_le_bytes());
+            out.extend(layer.weights.iter().map(|&w| w as u8));
+            for s in &layer.weight_scales {
+                out.extend_from_slice(&s.to_le_bytes());
+            }
+            for b in &layer.bias {
+                out.extend_from_slice(&b.to_le_bytes());
+            }
+            for m in &layer.multiplier {
+                out.extend_from_slice(&m.to_le_bytes());
+            }
+            out.extend_from_slice(&layer.shift);
+        }
+        let total = (out.len() + format::CRC_LEN) as u32;
+        out[8..12].copy_from_slice(&total.to_le_bytes());
+        let crc = CRC32.checksum(&out);
+        out.extend_from_slice(&crc.to_le_bytes());
+        out
+    }
+}
+
+/// Running min and max of a set of values.
+#[derive(Clone, Copy, Debug)]
+struct Range {
+    min: f32,
+    max: f32,
+}
+
+impl Range {
+    const EMPTY: Range = Range {
+        min: f32::INFINITY,
+        max: f32::NEG_INFINITY,
+    };
+    fn add(&mut self, v: f32) {
+        self.min = self.min.min(v);
+        self.max = self.max.max(v);
+    }
+    fn add_all(&mut self, vs: &[f32]) {
+        vs.iter().for_each(|&v| self.add(v));
+    }
+    /// Affine int8 parameters covering the range widened to include 0.
+    fn affine(self) -> (f32, i8) {
+        let (min, max) = if self.min <= self.max {
+            (self.min, self.max)
+        } else {
+            (0.0, 0.0)
+        };
+        let (min, max) = (min.min(0.0), max.max(0.0));
+        let scale = ((max - min) / 255.0).max(1e-6);
+        let zero_point = (-128.0 - min / scale).round().clamp(-128.0, 127.0) as i8;
+        (scale, zero_point)
+    }
+}
+
+/// `multiplier * 2^-shift ~= m`, `multiplier` in `[2^30, 2^31)` (or 0 for a vanishing `m`).
+pub fn quantize_multiplier(m: f64) -> Result<(i32, u8), QuantizeError> {
+    if !m.is_finite() || m < 0.0 {
+        return Err(QuantizeError::NonFinite);
+    }
+    if m == 0.0 {
+        return Ok((0, 31));
+    }
+    // m = f * 2^e with f in [0.5, 1).
+    let mut e = m.log2().floor() as i32 + 1;
+    let mut f = m / 2f64.powi(e);
+    while f >= 1.0 {
+        f /= 2.0;
+        e += 1;
+    }
+    while f < 0.5 {
+        f *= 2.0;
+        e -= 1;
+    }
+    let mut q = (f * (1u64 << 31) as f64).round() as i64;
+    if q == 1i64 << 31 {
+        q /= 2;
+        e += 1;
+    }
+    let mut shift = 31 - e;
+    if shift < 1 {
+        return Err(QuantizeError::Multiplier);
+    }
+    if shift > 62 {
+        let extra = (shift - 62).min(63) as u32;
+        q = (q + (1i64 << (extra - 1))) >> extra;
+        shift = 62;
+    }
+    Ok((q as i32, shift as u8))
+}
+
+fn check_capacity(field: &'static str, value: usize, max: usize) -> Result<(), QuantizeError> {
+    if (1..=max).contains(&value) {
+        Ok(())
+    } else {
+        Err(QuantizeError::Capacity { field, value, max })
+    }
+}
+
+/// Quantizes `actor` into model file bytes, calibrating activation ranges on `calibration`:
+/// recorded `(task, features)` observations, ideally from the states the policy visits.
+///
+/// ```
+/// use skyherd_model::{decode, quantize, ActorShape, FloatActor, ModelMeta, Task};
+/// let actor = FloatActor::random(ActorShape { features: 4, hidden: 8, shared_layers: 1 }, 7);
+/// let obs = [[0.1, -0.3, 0.5, 0.0], [0.9, 0.2, -0.4, 1.0]];
+/// let calibration = obs.iter().map(|o| (Task::Driving, &o[..]));
+/// let meta = ModelMeta { encoder_version: 1, max_speed: 5.0 };
+/// let bytes = quantize(&actor, meta, calibration).unwrap();
+/// assert_eq!(decode(&bytes).unwrap().hidden, 8);
+/// ```
+pub fn quantize<'o>(
+    actor: &FloatActor,
+    meta: ModelMeta,
+    calibration: impl IntoIterator<Item = (Task, &'o [f32])>,
+) -> Result<Vec<u8>, QuantizeError> {
+    Ok(quantize_model(actor, meta, calibration)?.to_bytes())
+}
+
+/// Like [`quantize`], returning the owned [`QuantizedModel`] instead of bytes.
+pub fn quantize_model<'o>(
+    actor: &FloatActor,
+    meta: ModelMeta,
+    calibration: impl IntoIterator<Item = (Task, &'o [f32])>,
+) -> Result<QuantizedModel, QuantizeError> {
+    let shape = actor.shape().ok_or(QuantizeError::Shape)?;
+    check_capacity("feature count", shape.features, MAX_FEATURES)?;
+    check_capacity("hidden width", shape.hidden, MAX_WIDTH)?;
+    if shape.shared_layers > MAX_SHARED_LAYERS {
+        return Err(QuantizeError::Capacity {
+            field: "shared layer count",
+            value: shape.shared_layers,
+            max: MAX_SHARED_LAYERS,
+        });
+    }
+    if !(meta.max_speed.is_finite() && meta.max_speed > 0.0) {
+        return Err(QuantizeError::NonFinite);
+    }
+    let all_layers = actor
+        .task_inputs
+        .iter()
+        .chain(&actor.shared)
+        .chain(&actor.task_outputs);
+    if all_layers
+        .flat_map(|d| d.weights.iter().chain(&d.bias))
+        .any(|v| !v.is_finite())
+    {
+        return Err(QuantizeError::NonFinite);
+    }
+
+    // One pass over the calibration set collects every range.
+    let mut input = vec![Range::EMPTY; shape.features];
+    let mut hidden_in = Range::EMPTY;
+    let mut shared = vec![Range::EMPTY; shape.shared_layers];
+    let mut outputs = [Range::EMPTY; Task::COUNT];
+    let mut count = 0usize;
+    for (task, features) in calibration {
+        if features.len() != shape.features {
+            return Err(QuantizeError::CalibrationLength {
+                expected: shape.features,
+                found: features.len(),
+            });
+        }
+        if features.iter().any(|v| !v.is_finite()) {
+            return Err(QuantizeError::NonFinite);
+        }
+        input.iter_mut().zip(features).for_each(|(r, &v)| r.add(v));
+        let trace = actor.trace(task, features);
+        hidden_in.add_all(&trace.input_layer);
+        shared
+            .iter_mut()
+            .zip(&trace.shared)
+            .for_each(|(r, v)| r.add_all(v));
+        outputs[task.index()].add_all(&trace.pre_tanh);
+        count += 1;
+    }
+    if count == 0 {
+        return Err(QuantizeError::NoCalibration);
+    }
+
+    let (input_scales, input_zero_points): (Vec<f32>, Vec<i8>) =
+        input.iter().map(|r| r.affine()).unzip();
+    let hidden_in = hidden_in.affine();
+    let shared: Vec<(f32, i8)> = shared.iter().map(|r| r.affine()).collect();
+    let last_hidden = shared.last().copied().unwrap_or(hidden_in);
+
+    let mut layers = Vec::with_capacity(2 * Task::COUNT + shape.shared_layers);
+    for dense in &actor.task_inputs {
+        // Per-feature input scale folded into the weights; the layer sees input scale 1.
+        let folded: Vec<f32> = dense
+            .weights
+            .chunks_exact(dense.inputs)
+            .flat_map(|row| row.iter().zip(&input_scales).map(|(w, s)| w * s))
+            .collect();
+        layers.push(quantize_layer(
+            dense.inputs,
+            &folded,
+            &dense.bias,
+            1.0,
+            &input_zero_points,
+            hidden_in,
+            true,
+        )?);
+    }
+    let mut previous = hidden_in;
+    for (dense, &out) in actor.shared.iter().zip(&shared) {
+        let zero_points = vec![previous.1; dense.inputs];
+        layers.push(quantize_layer(
+            dense.inputs,
+            &dense.weights,
+            &dense.bias,
+            previous.0,
+            &zero_points,
+            out,
+            true,
+        )?);
+        previous = out;
+    }
+    for (dense, range) in actor.task_outputs.iter().zip(outputs) {
+        let clipped = if range.min <= range.max {
+            Range {
+                min: range.min.max(-OUTPUT_CLIP),
+                max: range.max.min(OUTPUT_CLIP),
+            }
+        } else {
+            Range {
+                min: -OUTPUT_CLIP,
+                max: OUTPUT_CLIP,
+            }
+        };
+        let zero_points = vec![last_hidden.1; dense.inputs];
+        layers.push(quantize_layer(
+            dense.inputs,
+            &dense.weights,
+            &dense.bias,
+            last_hidden.0,
+            &zero_points,
+            clipped.affine(),
+            false,
+        )?);
+    }
+    Ok(QuantizedModel {
+        meta,
+        hidden: shape.hidden,
+        input_scales,
+        input_zero_points,
+        layers,
+    })
+}
+
+fn quantize_layer(
+    inputs: usize,
+    weights: &[f32],
+    bias: &[f32],
+    input_scale: f32,
+    input_zero_points: &[i8],
+    (output_scale, output_zero_point): (f32, i8),
+    relu: bool,
+) -> Result<QuantizedLayer, QuantizeError> {
+    let outputs = bias.len();
+    let mut layer = QuantizedLayer {
+        inputs,
+        outputs,
+        relu,
+        output_zero_point,
+        output_scale,
+        weights: Vec::with_capacity(inputs * outputs),
+        weight_scales: Vec::with_capacity(outputs),
+        bias: Vec::with_capacity(outputs),
+        multiplier: Vec::with_capacity(outputs),
+        shift: Vec::with_capacity(outputs),
+    };
+    for (row, &b) in weights.chunks_exact(inputs).zip(bias) {
+        let max = row.iter().fold(0.0f32, |m, w| m.max(w.abs()));
+        let scale = if max > 0.0 { max / 127.0 } else { 1.0 };
+        let q: Vec<i8> = row
+            .iter()
+            .map(|w| (w / scale).round().clamp(-127.0, 127.0) as i8)
+            .collect();
+        let accumulator_scale = input_scale as f64 * scale as f64;
+        let folded = (b as f64 / accumulator_scale).round()
+            - q.iter()
+                .zip(input_zero_points)
+                .map(|(&w, &z)| w as f64 * z as f64)
+                .sum::<f64>();
+        if folded.is_nan() || folded.abs() > BIAS_LIMIT as f64 {
+            return Err(QuantizeError::BiasOverflow);
+        }
+        let (multiplier, shift) = quantize_multiplier(accumulator_scale / output_scale as f64)?;
+        layer.weights.extend_from_slice(&q);
+        layer.weight_scales.push(scale);
+        layer.bias.push(folded as i32);
+        layer.multiplier.push(multiplier);
+        layer.shift.push(shift);
+    }
+    Ok(layer)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn multiplier_round_trips() {
+        for m in [
+            1e-9,
+            3.7e-5,
+            0.001,
+            0.25,
+            0.5,
+            0.999_999_9,
+            1.0,
+            3.0,
+            1000.0,
+        ] {
+            let (q, s) = quantize_multiplier(m).unwrap();
+            let back = q as f64 / 2f64.powi(s as i32);
+            assert!(((back - m) / m).abs() < 1e-8, "{m}: {q} >> {s} = {back}");
+            assert!((1 << 30..=i32::MAX).contains(&q));
+        }
+        assert_eq!(quantize_multiplier(0.0), Ok((0, 31)));
+        assert_eq!(quantize_multiplier(1e40), Err(QuantizeError::Multiplier));
+        // Tiny multipliers lose precision rather than failing.
+        let (q, s) = quantize_multiplier(1e-25).unwrap();
+        assert_eq!(s, 62);
+        assert!(q < 1 << 30);
+    }
+
+    #[test]
+    fn affine_covers_zero() {
+        let (scale, zp) = Range {
+            min: 0.0,
+            max: 2.55,
+        }
+        .affine();
+        assert!((scale - 0.01).abs() < 1e-7);
+        assert_eq!(zp, -128);
+        let (_, zp) = Range {
+            min: -1.28,
+            max: 1.27,
+        }
+        .affine();
+        assert_eq!(zp, 0);
+    }
+}
