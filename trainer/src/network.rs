@@ -1,0 +1,371 @@
+//! The MTDDPG network shape of the paper's Fig. 2, used for both actor and critic: a
+//! task-specific input layer, shared hidden layers (all ReLU), and a task-specific output layer.
+//!
+//! * Actor: `FEATURES -> H` (per task) `-> H ... -> H` (shared) `-> 3` (per task), then `tanh`:
+//!   a normalised velocity in the encoder's local frame.
+//! * Critic: `FEATURES + 3 -> H -> ... -> 1`, no output activation: `Q(s, a)`.
+//!
+//! ```
+//! use skyherd_trainer::network::MultiTaskMlp;
+//! use skyherd_trainer::nn::Activation;
+//! use rand::SeedableRng;
+//! let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
+//! let actor = MultiTaskMlp::new(2, 46, 64, 1, 3, Activation::Tanh, &mut rng);
+//! let action = actor.predict(0, &[0.1; 46]);
+//! assert_eq!(action.len(), 3);
+//! assert!(action.iter().all(|a| a.abs() <= 1.0));
+//! ```
+
+use rand::Rng;
+use serde::{Deserialize, Serialize};
+
+use crate::nn::{Activation, Dense};
+
+/// Final-layer init bound: small outputs at the start, as in cleanrl's DDPG (and the original
+/// paper), so the untrained actor neither saturates tanh nor the critic explodes.
+pub const OUTPUT_INIT_BOUND: f32 = 3e-3;
+
+/// A multi-task MLP: per-task input layer -> shared hidden layers -> per-task output layer.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct MultiTaskMlp {
+    /// One `inputs -> hidden` layer per task (followed by ReLU).
+    pub task_inputs: Vec<Dense>,
+    /// Shared `hidden -> hidden` layers (each followed by ReLU).
+    pub shared: Vec<Dense>,
+    /// One `hidden -> outputs` layer per task.
+    pub task_outputs: Vec<Dense>,
+    /// What follows the output layer.
+    pub output_activation: Activation,
+}
+
+/// The activations of one forward pass, kept for the backward pass.
+#[derive(Clone, Debug, Default)]
+pub struct Tape {
+    /// Which task's layers ran.
+    pub task: usize,
+    /// Rows in the batch.
+    pub batch: usize,
+    /// `activations[0]` is the input, `activations[i]` the output of layer `i` after its
+    /// activation; the last is the network's output.
+    pub activations: Vec<Vec<f32>>,
+}
+
+impl Tape {
+    /// The network's output for the batch, row-major `[batch][outputs]`.
+    pub fn output(&self) -> &[f32] {
+        self.activations.last().map(Vec::as_slice).unwrap_or(&[])
+    }
+}
+
+impl MultiTaskMlp {
+    /// A freshly initialised network for `tasks` tasks.
+    pub fn new<R: Rng>(
+        tasks: usize,
+        inputs: usize,
+        hidden: usize,
+        shared_layers: usize,
+        outputs: usize,
+        output_activation: Activation,
+        rng: &mut R,
+    ) -> MultiTaskMlp {
+        MultiTaskMlp {
+            task_inputs: (0..tasks)
+                .map(|_| Dense::new_uniform(inputs, hidden, rng))
+                .collect(),
+            shared: (0..shared_layers)
+                .map(|_| Dense::new_uniform(hidden, hidden, rng))
+                .collect(),
+            task_outputs: (0..tasks)
+                .map(|_| Dense::new_uniform_bound(hidden, outputs, OUTPUT_INIT_BOUND, rng))
+                .collect(),
+            output_activation,
+        }
+    }
+
+    /// Number of tasks.
+    pub fn tasks(&self) -> usize {
+        self.task_inputs.len()
+    }
+
+    /// Input width.
+    pub fn inputs(&self) -> usize {
+        self.task_inputs.first().map_or(0, |l| l.inputs)
+    }
+
+    /// Output width.
+    pub fn outputs(&self) -> usize {
+        self.task_outputs.first().map_or(0, |l| l.outputs)
+    }
+
+    /// Hidden width.
+    pub fn hidden(&self) -> usize {
+        self.task_inputs.first().map_or(0, |l| l.outputs)
+    }
+
+    /// The layers one task's input runs through, in order.
+    fn path(&self, task: usize) -> impl Iterator<Item = &Dense> {
+        std::iter::once(&self.task_inputs[task])
+            .chain(self.shared.iter())
+            .chain(std::iter::once(&self.task_outputs[task]))
+    }
+
+    /// Every layer in a fixed order (task inputs, shared, task outputs): what optimisers and
+    /// soft updates walk over.
+    pub fn layers(&self) -> impl Iterator<Item = &Dense> {
+        self.task_inputs
+            .iter()
+            .chain(self.shared.iter())
+            .chain(self.task_outputs.iter())
+    }
+
+    /// Every layer, mutably, in the order of [`layers`](Self::layers).
+    pub fn layers_mut(&mut self) -> impl Iterator<Item = &mut Dense> {
+        self.task_inputs
+            .iter_mut()
+            .chain(self.shared.iter_mut())
+            .chain(self.task_outputs.iter_mut())
+    }
+
+    /// The same shape with every parameter zero: a gradient accumulator.
+    pub fn zeros_like(&self) -> MultiTaskMlp {
+        let mut z = self.clone();
+        z.layers_mut().for_each(Dense::fill_zero);
+        z
+    }
+
+    /// Total parameter count.
+    pub fn parameter_count(&self) -> usize {
+        self.layers().map(Dense::parameter_count).sum()
+    }
+
+    /// Runs a batch of `task` inputs (row-major `[batch][inputs]`), recording into `tape`.
+    pub fn forward(&self, task: usize, x: &[f32], batch: usize, tape: &mut Tape) {
+        assert!(task < self.tasks(), "task {task} out of range");
+        assert_eq!(
+            x.len(),
+            batch * self.inputs(),
+            "input batch has the wrong size"
+        );
+        let depth = self.shared.len() + 2;
+        tape.task = task;
+        tape.batch = batch;
+        tape.activations.resize_with(depth + 1, Vec::new);
+        tape.activations[0].clear();
+        tape.activations[0].extend_from_slice(x);
+        for (i, layer) in self.path(task).enumerate() {
+            let (done, rest) = tape.activations.split_at_mut(i + 1);
+            let y = &mut rest[0];
+            y.resize(batch * layer.outputs, 0.0);
+            layer.forward(&done[i], batch, y);
+            let activation = if i + 1 == depth {
+                self.output_activation
+            } else {
+                Activation::Relu
+            };
+            activation.apply(y);
+        }
+    }
+
+    /// Backpropagates `d_output = dL/d(output)` through the pass in `tape`. Parameter gradients
+    /// are added into `grads` (shaped like `self`, see [`zeros_like`](Self::zeros_like)) when
+    /// given; `dL/d(input)` is returned when `want_input_grad`.
+    pub fn backward(
+        &self,
+        tape: &Tape,
+        d_output: &[f32],
+        mut grads: Option<&mut MultiTaskMlp>,
+        want_input_grad: bool,
+    ) -> Option<Vec<f32>> {
+        let task = tape.task;
+        let batch = tape.batch;
+        let depth = self.shared.len() + 2;
+        let mut delta = d_output.to_vec();
+        self.output_activation
+            .backward(&tape.activations[depth], &mut delta);
+        let layers: Vec<&Dense> = self.path(task).collect();
+        for i in (0..depth).rev() {
+            let layer = layers[i];
+            let x = &tape.activations[i];
+            let grad = grads.as_deref_mut().map(|g| {
+                if i == 0 {
+                    &mut g.task_inputs[task]
+                } else if i + 1 == depth {
+                    &mut g.task_outputs[task]
+                } else {
+                    &mut g.shared[i - 1]
+                }
+            });
+            let need_dx = i > 0 || want_input_grad;
+            if need_dx {
+                let mut dx = vec![0.0; batch * layer.inputs];
+                layer.backward(x, &delta, batch, grad, Some(&mut dx));
+                if i > 0 {
+                    // The layer below ended in a ReLU whose outputs are `x`.
+                    Activation::Relu.backward(x, &mut dx);
+                }
+                delta = dx;
+            } else {
+                layer.backward(x, &delta, batch, grad, None);
+            }
+        }
+        want_input_grad.then_some(delta)
+    }
+
+    /// One input through `task`'s layers (no tape kept): for acting and tests.
+    pub fn predict(&self, task: usize, x: &[f32]) -> Vec<f32> {
+        let mut tape = Tape::default();
+        self.forward(task, x, 1, &mut tape);
+        tape.output().to_vec()
+    }
+
+    /// Polyak averaging towards `source`: `self = tau * source + (1 - tau) * self`.
+    pub fn soft_update_from(&mut self, source: &MultiTaskMlp, tau: f32) {
+        for (t, s) in self.layers_mut().zip(source.layers()) {
+            for (tw, sw) in t
+                .weights
+                .iter_mut()
+                .chain(t.bias.iter_mut())
+                .zip(s.weights.iter().chain(s.bias.iter()))
+            {
+                *tw += tau * (sw - *tw);
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::SeedableRng;
+    use rand_chacha::ChaCha8Rng;
+
+    /// Checks every parameter's and every input's gradient of `L = sum c * output` against
+    /// central differences, for each task.
+    fn gradient_check(net: &MultiTaskMlp, batch: usize, seed: u64) {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        for task in 0..net.tasks() {
+            let x: Vec<f32> = (0..batch * net.inputs())
+                .map(|_| rng.random_range(-1.0..1.0))
+                .collect();
+            let c: Vec<f32> = (0..batch * net.outputs())
+                .map(|_| rng.random_range(-1.0..1.0))
+                .collect();
+            let loss = |net: &MultiTaskMlp, x: &[f32]| -> f64 {
+                let mut tape = Tape::default();
+                net.forward(task, x, batch, &mut tape);
+                tape.output()
+                    .iter()
+                    .zip(&c)
+                    .map(|(&y, &c)| y as f64 * c as f64)
+                    .sum()
+            };
+            let mut tape = Tape::default();
+            net.forward(task, &x, batch, &mut tape);
+            let mut grads = net.zeros_like();
+            let dx = net
+                .backward(&tape, &c, Some(&mut grads), true)
+                .expect("input gradient requested");
+            // Small enough not to cross ReLU kinks, large enough for f32 round-off.
+            let h = 2e-3_f32;
+            let close = |numeric: f64, analytic: f32, what: &str| {
+                let tol = 2e-3 + 2e-2 * numeric.abs();
+                assert!(
+                    (numeric - analytic as f64).abs() < tol,
+                    "task {task} {what}: numeric {numeric} vs analytic {analytic}"
+                );
+            };
+            let layer_count = net.layers().count();
+            for li in 0..layer_count {
+                let size = net.layers().nth(li).map_or(0, |l| l.weights.len());
+                let bias = net.layers().nth(li).map_or(0, |l| l.bias.len());
+                for k in 0..size + bias {
+                    let nudge = |delta: f32| {
+                        let mut n = net.clone();
+                        if let Some(l) = n.layers_mut().nth(li) {
+                            if k < size {
+                                l.weights[k] += delta;
+                            } else {
+                                l.bias[k - size] += delta;
+                            }
+                        }
+                        loss(&n, &x)
+                    };
+                    let numeric = (nudge(h) - nudge(-h)) / (2.0 * h as f64);
+                    let g = grads.layers().nth(li).map_or(0.0, |l| {
+                        if k < size {
+                            l.weights[k]
+                        } else {
+                            l.bias[k - size]
+                        }
+                    });
+                    close(numeric, g, &format!("layer {li} param {k}"));
+                }
+            }
+            for i in 0..x.len() {
+                let mut plus = x.clone();
+                plus[i] += h;
+                let mut minus = x.clone();
+                minus[i] -= h;
+                let numeric = (loss(net, &plus) - loss(net, &minus)) / (2.0 * h as f64);
+                close(numeric, dx[i], &format!("input {i}"));
+            }
+        }
+    }
+
+    /// A net with larger output weights than the default init, so tanh is exercised away from
+    /// its linear region and the check is not trivially satisfied.
+    fn test_net(inputs: usize, outputs: usize, act: Activation, seed: u64) -> MultiTaskMlp {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let mut net = MultiTaskMlp::new(2, inputs, 6, 2, outputs, act, &mut rng);
+        for l in net.task_outputs.iter_mut() {
+            *l = Dense::new_uniform_bound(l.inputs, l.outputs, 0.8, &mut rng);
+        }
+        net
+    }
+
+    #[test]
+    fn actor_gradients_match_finite_differences() {
+        gradient_check(&test_net(5, 3, Activation::Tanh, 10), 3, 11);
+    }
+
+    #[test]
+    fn critic_gradients_match_finite_differences() {
+        gradient_check(&test_net(7, 1, Activation::Identity, 20), 4, 21);
+    }
+
+    #[test]
+    fn tasks_share_hidden_layers_but_not_their_own() {
+        let net = test_net(4, 2, Activation::Identity, 5);
+        let mut tape = Tape::default();
+        net.forward(0, &[0.5, -0.2, 0.1, 0.9], 1, &mut tape);
+        let mut grads = net.zeros_like();
+        net.backward(&tape, &[1.0, -1.0], Some(&mut grads), false);
+        let nonzero = |l: &Dense| l.weights.iter().chain(&l.bias).any(|&w| w != 0.0);
+        assert!(nonzero(&grads.task_inputs[0]) && nonzero(&grads.task_outputs[0]));
+        assert!(grads.shared.iter().any(nonzero));
+        assert!(!nonzero(&grads.task_inputs[1]) && !nonzero(&grads.task_outputs[1]));
+        // Different tasks give different answers from the same input.
+        assert_ne!(net.predict(0, &[0.5; 4]), net.predict(1, &[0.5; 4]));
+    }
+
+    #[test]
+    fn soft_update_moves_a_fraction_of_the_way() {
+        let a = test_net(3, 1, Activation::Identity, 1);
+        let b = test_net(3, 1, Activation::Identity, 2);
+        let mut t = a.clone();
+        t.soft_update_from(&b, 0.25);
+        let (wa, wb, wt) = (
+            a.shared[0].weights[0],
+            b.shared[0].weights[0],
+            t.shared[0].weights[0],
+        );
+        assert!((wt - (0.75 * wa + 0.25 * wb)).abs() < 1e-6);
+        t.soft_update_from(&b, 1.0);
+        let max_gap = t
+            .layers()
+            .zip(b.layers())
+            .flat_map(|(x, y)| x.weights.iter().zip(&y.weights).map(|(p, q)| (p - q).abs()))
+            .fold(0.0_f32, f32::max);
+        assert!(max_gap < 1e-6, "tau = 1 copies the source, gap {max_gap}");
+    }
+}
