@@ -1,5 +1,9 @@
 //! skyherd-trainer: MTDDPG for skyherd.
 #![forbid(unsafe_op_in_unsafe_fn)]
 
+pub mod checkpoint;
+pub mod config;
+pub mod ddpg;
 pub mod network;
 pub mod nn;
+pub mod replay;

@@ -1,0 +1,368 @@
+//! Checkpoints as safetensors: every network of the [`Agent`] (actor, critic, both targets), the
+//! Adam moments, and in the metadata the training progress and the run's config, so a run can
+//! `--resume` where it stopped.
+//!
+//! Tensor names: `{net}.{part}.{index}.{weight|bias}` with `net` one of `actor`, `critic`,
+//! `target_actor`, `target_critic`, `actor_adam_m`, `actor_adam_v`, `critic_adam_m`,
+//! `critic_adam_v`, and `part` one of `task_inputs`, `shared`, `task_outputs`. Weights are
+//! `[outputs, inputs]` row-major f32, as in `skyherd_model::Dense`.
+//!
+//! The replay buffers are not saved (hundreds of MB); a resumed run refills them.
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+
+use safetensors::tensor::{Dtype, SafeTensors, TensorView};
+use serde::{Deserialize, Serialize};
+use thiserror::Error;
+
+use crate::config::TrainConfig;
+use crate::ddpg::Agent;
+use crate::network::MultiTaskMlp;
+use crate::nn::{Activation, Adam, AdamConfig, Dense};
+
+/// Why a checkpoint could not be written or read.
+#[derive(Debug, Error)]
+pub enum CheckpointError {
+    /// File system trouble.
+    #[error("checkpoint {path}: {source}")]
+    Io {
+        /// The path.
+        path: PathBuf,
+        /// The OS error.
+        source: std::io::Error,
+    },
+    /// The safetensors container is malformed.
+    #[error("checkpoint format: {0}")]
+    Format(String),
+    /// A tensor is missing or has the wrong shape.
+    #[error("checkpoint tensor `{0}` missing or malformed")]
+    Tensor(String),
+    /// The metadata is missing a key or holds a bad value.
+    #[error("checkpoint metadata `{0}` missing or malformed")]
+    Metadata(&'static str),
+}
+
+/// Where a run stands; saved beside the weights.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Progress {
+    /// DDPG environment steps done.
+    pub env_steps: u64,
+    /// Finished training episodes.
+    pub episodes: u64,
+    /// Whether the warm start is behind us.
+    pub warm_start_done: bool,
+    /// Wall-clock seconds spent so far (over all sessions of the run).
+    pub wall_time_s: f64,
+    /// Best evaluation so far: success rate.
+    pub best_success: f64,
+    /// Best evaluation so far: mean time of successful episodes over the lower bound.
+    pub best_time_ratio: f64,
+}
+
+/// Everything a checkpoint holds.
+#[derive(Clone, Debug)]
+pub struct Checkpoint {
+    /// The networks and optimisers.
+    pub agent: Agent,
+    /// Counters.
+    pub progress: Progress,
+    /// The run's config.
+    pub config: TrainConfig,
+}
+
+const NETS: [&str; 4] = ["actor", "critic", "target_actor", "target_critic"];
+
+fn layer_groups(net: &MultiTaskMlp) -> [(&'static str, &[Dense]); 3] {
+    [
+        ("task_inputs", &net.task_inputs),
+        ("shared", &net.shared),
+        ("task_outputs", &net.task_outputs),
+    ]
+}
+
+fn f32_bytes(v: &[f32]) -> Vec<u8> {
+    v.iter().flat_map(|x| x.to_le_bytes()).collect()
+}
+
+/// Writes `(name, shape, bytes)` for every tensor of `net` under `prefix`.
+fn push_net(out: &mut Vec<(String, Vec<usize>, Vec<u8>)>, prefix: &str, net: &MultiTaskMlp) {
+    for (part, layers) in layer_groups(net) {
+        for (i, l) in layers.iter().enumerate() {
+            out.push((
+                format!("{prefix}.{part}.{i}.weight"),
+                vec![l.outputs, l.inputs],
+                f32_bytes(&l.weights),
+            ));
+            out.push((
+                format!("{prefix}.{part}.{i}.bias"),
+                vec![l.outputs],
+                f32_bytes(&l.bias),
+            ));
+        }
+    }
+}
+
+/// The networks of an Adam state, in the network's layer order, as a [`MultiTaskMlp`] shape.
+fn adam_as_net(adam: &[Dense], like: &MultiTaskMlp) -> MultiTaskMlp {
+    let mut net = like.zeros_like();
+    for (dst, src) in net.layers_mut().zip(adam) {
+        dst.clone_from(src);
+    }
+    net
+}
+
+/// Serialises a checkpoint to safetensors bytes.
+pub fn to_bytes(checkpoint: &Checkpoint) -> Result<Vec<u8>, CheckpointError> {
+    let a = &checkpoint.agent;
+    let mut tensors = Vec::new();
+    for (name, net) in NETS
+        .iter()
+        .zip([&a.actor, &a.critic, &a.target_actor, &a.target_critic])
+    {
+        push_net(&mut tensors, name, net);
+    }
+    push_net(
+        &mut tensors,
+        "actor_adam_m",
+        &adam_as_net(&a.actor_optimizer.first, &a.actor),
+    );
+    push_net(
+        &mut tensors,
+        "actor_adam_v",
+        &adam_as_net(&a.actor_optimizer.second, &a.actor),
+    );
+    push_net(
+        &mut tensors,
+        "critic_adam_m",
+        &adam_as_net(&a.critic_optimizer.first, &a.critic),
+    );
+    push_net(
+        &mut tensors,
+        "critic_adam_v",
+        &adam_as_net(&a.critic_optimizer.second, &a.critic),
+    );
+    let views = tensors
+        .iter()
+        .map(|(name, shape, bytes)| {
+            TensorView::new(Dtype::F32, shape.clone(), bytes)
+                .map(|v| (name.clone(), v))
+                .map_err(|e| CheckpointError::Format(e.to_string()))
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    let mut meta = HashMap::new();
+    meta.insert("format".into(), "skyherd-trainer-checkpoint-v1".into());
+    meta.insert("tasks".into(), a.actor.tasks().to_string());
+    meta.insert("shared_layers".into(), a.actor.shared.len().to_string());
+    meta.insert("updates".into(), a.updates.to_string());
+    meta.insert("actor_adam_step".into(), a.actor_optimizer.step.to_string());
+    meta.insert(
+        "critic_adam_step".into(),
+        a.critic_optimizer.step.to_string(),
+    );
+    meta.insert(
+        "progress".into(),
+        toml::to_string(&checkpoint.progress).unwrap_or_default(),
+    );
+    meta.insert("config".into(), checkpoint.config.to_toml());
+    safetensors::serialize(views, &Some(meta)).map_err(|e| CheckpointError::Format(e.to_string()))
+}
+
+fn read_dense(st: &SafeTensors<'_>, name: &str) -> Result<Dense, CheckpointError> {
+    let tensor = |n: String| -> Result<(Vec<usize>, Vec<f32>), CheckpointError> {
+        let t = st
+            .tensor(&n)
+            .map_err(|_| CheckpointError::Tensor(n.clone()))?;
+        if t.dtype() != Dtype::F32 {
+            return Err(CheckpointError::Tensor(n));
+        }
+        let values = t
+            .data()
+            .chunks_exact(4)
+            .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+            .collect();
+        Ok((t.shape().to_vec(), values))
+    };
+    let (wshape, weights) = tensor(format!("{name}.weight"))?;
+    let (bshape, bias) = tensor(format!("{name}.bias"))?;
+    if wshape.len() != 2 || bshape != [wshape[0]] {
+        return Err(CheckpointError::Tensor(name.to_owned()));
+    }
+    Ok(Dense {
+        inputs: wshape[1],
+        outputs: wshape[0],
+        weights,
+        bias,
+    })
+}
+
+fn read_net(
+    st: &SafeTensors<'_>,
+    prefix: &str,
+    tasks: usize,
+    shared: usize,
+    output_activation: Activation,
+) -> Result<MultiTaskMlp, CheckpointError> {
+    let group = |part: &str, count: usize| {
+        (0..count)
+            .map(|i| read_dense(st, &format!("{prefix}.{part}.{i}")))
+            .collect::<Result<Vec<_>, _>>()
+    };
+    Ok(MultiTaskMlp {
+        task_inputs: group("task_inputs", tasks)?,
+        shared: group("shared", shared)?,
+        task_outputs: group("task_outputs", tasks)?,
+        output_activation,
+    })
+}
+
+/// Parses safetensors bytes written by [`to_bytes`].
+pub fn from_bytes(bytes: &[u8]) -> Result<Checkpoint, CheckpointError> {
+    let (_, header) =
+        SafeTensors::read_metadata(bytes).map_err(|e| CheckpointError::Format(e.to_string()))?;
+    let meta = header
+        .metadata()
+        .clone()
+        .ok_or(CheckpointError::Metadata("__metadata__"))?;
+    let st = SafeTensors::deserialize(bytes).map_err(|e| CheckpointError::Format(e.to_string()))?;
+    let number = |key: &'static str| -> Result<u64, CheckpointError> {
+        meta.get(key)
+            .and_then(|v| v.parse().ok())
+            .ok_or(CheckpointError::Metadata(key))
+    };
+    let tasks = number("tasks")? as usize;
+    let shared = number("shared_layers")? as usize;
+    let config = meta
+        .get("config")
+        .and_then(|t| TrainConfig::from_toml_str(t).ok())
+        .ok_or(CheckpointError::Metadata("config"))?;
+    let progress: Progress = meta
+        .get("progress")
+        .and_then(|t| toml::from_str(t).ok())
+        .ok_or(CheckpointError::Metadata("progress"))?;
+    let net = |prefix: &str, act| read_net(&st, prefix, tasks, shared, act);
+    let actor = net("actor", Activation::Tanh)?;
+    let critic = net("critic", Activation::Identity)?;
+    let mut agent = Agent::from_networks(actor, critic, config.ddpg);
+    agent.target_actor = net("target_actor", Activation::Tanh)?;
+    agent.target_critic = net("target_critic", Activation::Identity)?;
+    let adam = |m: &str, v: &str, act, step: u64, lr: f32| -> Result<Adam, CheckpointError> {
+        Ok(Adam {
+            config: AdamConfig {
+                learning_rate: lr,
+                ..AdamConfig::default()
+            },
+            step,
+            first: net(m, act)?.layers().cloned().collect(),
+            second: net(v, act)?.layers().cloned().collect(),
+        })
+    };
+    agent.actor_optimizer = adam(
+        "actor_adam_m",
+        "actor_adam_v",
+        Activation::Tanh,
+        number("actor_adam_step")?,
+        config.ddpg.actor_learning_rate,
+    )?;
+    agent.critic_optimizer = adam(
+        "critic_adam_m",
+        "critic_adam_v",
+        Activation::Identity,
+        number("critic_adam_step")?,
+        config.ddpg.critic_learning_rate,
+    )?;
+    agent.updates = number("updates")?;
+    Ok(Checkpoint {
+        agent,
+        progress,
+        config,
+    })
+}
+
+/// Writes a checkpoint atomically (temporary file, then rename), so a run killed mid-write
+/// leaves the previous checkpoint intact.
+pub fn save(path: &Path, checkpoint: &Checkpoint) -> Result<(), CheckpointError> {
+    let bytes = to_bytes(checkpoint)?;
+    let io = |source| CheckpointError::Io {
+        path: path.to_owned(),
+        source,
+    };
+    if let Some(dir) = path.parent() {
+        std::fs::create_dir_all(dir).map_err(io)?;
+    }
+    let tmp = path.with_extension("safetensors.tmp");
+    std::fs::write(&tmp, bytes).map_err(io)?;
+    std::fs::rename(&tmp, path).map_err(io)
+}
+
+/// Reads a checkpoint file.
+pub fn load(path: &Path) -> Result<Checkpoint, CheckpointError> {
+    let bytes = std::fs::read(path).map_err(|source| CheckpointError::Io {
+        path: path.to_owned(),
+        source,
+    })?;
+    from_bytes(&bytes)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::ddpg::NetworkConfig;
+    use crate::replay::Batch;
+    use rand::SeedableRng;
+
+    #[test]
+    fn save_and_load_round_trip_everything() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        let config = TrainConfig {
+            seed: 99,
+            ..TrainConfig::default()
+        };
+        let network = NetworkConfig {
+            hidden: 8,
+            shared_layers: 2,
+        };
+        let mut agent = Agent::new(5, 2, network, config.ddpg, &mut rng);
+        // Take a few steps so targets, moments and counters differ from a fresh agent.
+        let mut batch = Batch {
+            size: 2,
+            obs: vec![0.1, 0.2, 0.3, 0.4, 0.5, -0.1, -0.2, -0.3, -0.4, -0.5],
+            actions: vec![0.5, 0.0, -0.5, 0.1, 0.2, 0.3],
+            rewards: vec![-1.0, 2.0],
+            next_obs: vec![0.0; 10],
+            continues: vec![1.0, 0.0],
+        };
+        for _ in 0..3 {
+            agent.update(&[batch.clone(), batch.clone()]);
+        }
+        let progress = Progress {
+            env_steps: 1234,
+            episodes: 7,
+            warm_start_done: true,
+            wall_time_s: 12.5,
+            best_success: 0.75,
+            best_time_ratio: 3.25,
+        };
+        let original = Checkpoint {
+            agent,
+            progress,
+            config,
+        };
+        let dir = std::env::temp_dir().join(format!("skyherd-ckpt-{}", std::process::id()));
+        let path = dir.join("c.safetensors");
+        save(&path, &original).expect("save");
+        let back = load(&path).expect("load");
+        let _ = std::fs::remove_dir_all(&dir);
+        let (a, b) = (&original.agent, &back.agent);
+        assert_eq!(a.actor, b.actor);
+        assert_eq!(a.critic, b.critic);
+        assert_eq!(a.target_actor, b.target_actor);
+        assert_eq!(a.target_critic, b.target_critic);
+        assert_eq!(a.actor_optimizer, b.actor_optimizer);
+        assert_eq!(a.critic_optimizer, b.critic_optimizer);
+        assert_eq!(a.updates, b.updates);
+        assert_eq!(back.progress, original.progress);
+        assert_eq!(back.config, original.config);
+        assert!(from_bytes(&to_bytes(&original).expect("bytes")[..100]).is_err());
+    }
+}

@@ -1,0 +1,383 @@
+//! The training configuration: one TOML file holds every knob of a run, and `seed` makes the run
+//! reproducible (network init, exploration noise, replay sampling, episode seeds, curriculum
+//! draws all derive from it).
+//!
+//! Every section may be left out; missing keys take the documented defaults below, which are
+//! the settings of the shipped model (`trainer/configs/mtddpg-v1.toml` spells them all out).
+//!
+//! ```
+//! use skyherd_trainer::config::TrainConfig;
+//! let config = TrainConfig::from_toml_str(r#"
+//!     seed = 7
+//!     [ddpg]
+//!     batch_size = 64
+//! "#).unwrap();
+//! assert_eq!(config.seed, 7);
+//! assert_eq!(config.ddpg.batch_size, 64);
+//! assert!(config.warm_start.enabled); // default
+//! assert!(TrainConfig::from_toml_str("sede = 1").is_err()); // typos are errors
+//! ```
+
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+use thiserror::Error;
+
+use crate::ddpg::{DdpgConfig, NetworkConfig};
+
+/// Why a configuration was rejected.
+#[derive(Debug, Error)]
+pub enum ConfigError {
+    /// The file could not be read.
+    #[error("cannot read config {path}: {source}")]
+    Io {
+        /// The path.
+        path: PathBuf,
+        /// The OS error.
+        source: std::io::Error,
+    },
+    /// Not valid TOML or an unknown/mistyped key.
+    #[error("bad config: {0}")]
+    Parse(#[from] toml::de::Error),
+    /// A value is out of range.
+    #[error("invalid config field `{field}`: {reason}")]
+    Invalid {
+        /// Dotted field name.
+        field: &'static str,
+        /// What is wrong.
+        reason: String,
+    },
+}
+
+/// Which shepherding scenarios one curriculum stage draws episodes from.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CurriculumStage {
+    /// The stage starts once this fraction of the DDPG environment steps is done (0 for the
+    /// first stage).
+    pub from_progress: f64,
+    /// Target counts N drawn uniformly per episode.
+    pub targets: Vec<usize>,
+    /// Herder counts M drawn uniformly per episode; 0 means the adaptive count for N.
+    pub herders: Vec<usize>,
+}
+
+/// The curriculum over N and M. Disabled: every episode draws from the last stage.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct CurriculumConfig {
+    /// Whether to go through the stages in order.
+    pub enabled: bool,
+    /// Stages in increasing `from_progress`.
+    pub stages: Vec<CurriculumStage>,
+}
+
+impl Default for CurriculumConfig {
+    fn default() -> Self {
+        let stage = |from_progress: f64, targets: &[usize], herders: &[usize]| CurriculumStage {
+            from_progress,
+            targets: targets.to_vec(),
+            herders: herders.to_vec(),
+        };
+        CurriculumConfig {
+            enabled: true,
+            stages: vec![
+                stage(0.0, &[1, 2, 4, 8], &[1, 2, 4]),
+                stage(0.3, &[4, 8, 16, 32], &[1, 2, 4, 0]),
+                stage(0.6, &[8, 16, 32, 64, 128], &[1, 4, 8, 0]),
+            ],
+        }
+    }
+}
+
+/// Warm start by behaviour cloning a rule-based baseline (the control-tutor idea of CTRL), then
+/// policy evaluation of the cloned actor to give the critic a head start.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct WarmStartConfig {
+    /// Whether to warm start at all.
+    pub enabled: bool,
+    /// The baseline imitated in the driving task (a `skyherd_sim::baseline::Method` name).
+    pub driving_baseline: String,
+    /// The baseline imitated in the collecting task.
+    pub collecting_baseline: String,
+    /// Demonstration episodes per task (scenarios drawn from every curriculum stage).
+    pub episodes_per_task: usize,
+    /// Imitation minibatch updates (one batch per task each).
+    pub imitation_updates: usize,
+    /// Imitation learning rate (the actor's Adam is reset to the DDPG rate afterwards).
+    pub imitation_learning_rate: f32,
+    /// Critic-only TD updates on the demonstrations before DDPG starts.
+    pub critic_updates: usize,
+}
+
+impl Default for WarmStartConfig {
+    fn default() -> Self {
+        WarmStartConfig {
+            enabled: true,
+            driving_baseline: "farthest".into(),
+            collecting_baseline: "farthest".into(),
+            episodes_per_task: 48,
+            imitation_updates: 20_000,
+            imitation_learning_rate: 1e-3,
+            critic_updates: 5_000,
+        }
+    }
+}
+
+/// How the environment's reward reaches the learner.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct RewardConfig {
+    /// Apply the simulator's `leave-covers-remaining-steps` correction of the suicide problem
+    /// (DESIGN §2) with the learner's gamma. Off: the paper's reward as printed.
+    pub leave_correction: bool,
+    /// Divide each episode's rewards by its idle-plus-flight cost per step,
+    /// `k0 (k3 |r3| N + k4 v_max M)`, so that N = 1 and N = 256 episodes give Q-values of the
+    /// same size. A constant factor per episode: each scenario's best policy is unchanged.
+    pub normalize_by_step_cost: bool,
+    /// Multiplies the flight term (eq 11). 1 is the paper; below 1 weakens the term that makes
+    /// standing still cheaper than herding (see MODEL.md).
+    pub flight_scale: f64,
+}
+
+impl Default for RewardConfig {
+    fn default() -> Self {
+        RewardConfig {
+            leave_correction: true,
+            normalize_by_step_cost: true,
+            flight_scale: 1.0,
+        }
+    }
+}
+
+/// Evaluation on held-out seeds, keeping the best checkpoint.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct EvalConfig {
+    /// Evaluate every this many DDPG updates (and after the warm start).
+    pub every_updates: u64,
+    /// Episodes per evaluation scenario.
+    pub episodes: usize,
+    /// Episode seeds are `seed_base + k`; far from the training seeds.
+    pub seed_base: u64,
+    /// `(task, N, M)` triples evaluated, with test-time noise; M = 0 is adaptive.
+    pub scenarios: Vec<(String, usize, usize)>,
+}
+
+impl Default for EvalConfig {
+    fn default() -> Self {
+        EvalConfig {
+            every_updates: 5_000,
+            episodes: 6,
+            seed_base: 1_000_000_000,
+            scenarios: vec![
+                ("driving".into(), 16, 4),
+                ("driving".into(), 64, 4),
+                ("collecting".into(), 16, 4),
+            ],
+        }
+    }
+}
+
+/// The DDPG phase: how much experience, how many updates.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct LoopConfig {
+    /// Environment steps (summed over the parallel environments) of DDPG fine-tuning.
+    pub env_steps: u64,
+    /// Environments stepped together, half of them per task.
+    pub envs: usize,
+    /// Gradient updates per environment step.
+    pub updates_per_env_step: f64,
+    /// Transitions kept per task.
+    pub replay_capacity: usize,
+    /// Steps of pure experience collection before the first DDPG update (after a warm start
+    /// the demonstrations already fill the buffers).
+    pub learning_starts: u64,
+    /// Training episodes are truncated (and bootstrapped) after this many steps.
+    pub episode_step_limit: u64,
+    /// Stop the DDPG phase after this many seconds of wall time, whatever `env_steps` says.
+    pub wall_clock_limit_s: f64,
+    /// Write `last.safetensors` every this many seconds.
+    pub checkpoint_every_s: f64,
+    /// Threads for rollouts and evaluation (the machine has 2 cores).
+    pub threads: usize,
+}
+
+impl Default for LoopConfig {
+    fn default() -> Self {
+        LoopConfig {
+            env_steps: 300_000,
+            envs: 8,
+            updates_per_env_step: 0.5,
+            replay_capacity: 500_000,
+            learning_starts: 2_000,
+            episode_step_limit: 600,
+            wall_clock_limit_s: 3_000.0,
+            checkpoint_every_s: 120.0,
+            threads: 2,
+        }
+    }
+}
+
+/// A whole training run.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct TrainConfig {
+    /// Master seed.
+    pub seed: u64,
+    /// Where checkpoints, the CSV log and the plot go.
+    pub output_dir: PathBuf,
+    /// Network sizes.
+    pub network: NetworkConfig,
+    /// DDPG hyper-parameters.
+    pub ddpg: DdpgConfig,
+    /// The DDPG loop.
+    pub training: LoopConfig,
+    /// Curriculum over N and M.
+    pub curriculum: CurriculumConfig,
+    /// Behaviour-cloning warm start.
+    pub warm_start: WarmStartConfig,
+    /// Reward handling.
+    pub reward: RewardConfig,
+    /// Held-out evaluation.
+    pub eval: EvalConfig,
+}
+
+impl Default for TrainConfig {
+    fn default() -> Self {
+        TrainConfig {
+            seed: 1,
+            output_dir: PathBuf::from("runs/mtddpg-v1"),
+            network: NetworkConfig::default(),
+            ddpg: DdpgConfig::default(),
+            training: LoopConfig::default(),
+            curriculum: CurriculumConfig::default(),
+            warm_start: WarmStartConfig::default(),
+            reward: RewardConfig::default(),
+            eval: EvalConfig::default(),
+        }
+    }
+}
+
+impl TrainConfig {
+    /// Parses and validates TOML text.
+    pub fn from_toml_str(text: &str) -> Result<TrainConfig, ConfigError> {
+        let config: TrainConfig = toml::from_str(text)?;
+        config.validate()?;
+        Ok(config)
+    }
+
+    /// Reads a config file.
+    pub fn load(path: &Path) -> Result<TrainConfig, ConfigError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Io {
+            path: path.to_owned(),
+            source,
+        })?;
+        TrainConfig::from_toml_str(&text)
+    }
+
+    /// The config as TOML (stored in every checkpoint).
+    pub fn to_toml(&self) -> String {
+        toml::to_string(self).unwrap_or_default()
+    }
+
+    /// Checks value ranges; the error names the field.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let bad = |field: &'static str, reason: &str| {
+            Err(ConfigError::Invalid {
+                field,
+                reason: reason.to_owned(),
+            })
+        };
+        let d = &self.ddpg;
+        if !(d.gamma > 0.0 && d.gamma <= 1.0) {
+            return bad("ddpg.gamma", "must be in (0, 1]");
+        }
+        if !(d.tau > 0.0 && d.tau <= 1.0) {
+            return bad("ddpg.tau", "must be in (0, 1]");
+        }
+        if d.batch_size < 2 {
+            return bad("ddpg.batch_size", "must be >= 2 (one row per task at least)");
+        }
+        if self.network.hidden == 0 || self.network.hidden > 255 {
+            return bad("network.hidden", "must be in 1..=255 (onboard capacity)");
+        }
+        if self.training.envs < 2 {
+            return bad("training.envs", "must be >= 2 (one per task at least)");
+        }
+        if self.training.threads == 0 {
+            return bad("training.threads", "must be >= 1");
+        }
+        if self.curriculum.stages.is_empty() {
+            return bad("curriculum.stages", "needs at least one stage");
+        }
+        for s in &self.curriculum.stages {
+            if s.targets.is_empty() || s.herders.is_empty() || s.targets.contains(&0) {
+                return bad(
+                    "curriculum.stages",
+                    "every stage needs target counts >= 1 and herder counts",
+                );
+            }
+        }
+        for (task, _, _) in &self.eval.scenarios {
+            if skyherd_sim::task::parse_task(task).is_none() {
+                return bad("eval.scenarios", "task must be `driving` or `collecting`");
+            }
+        }
+        for name in [
+            &self.warm_start.driving_baseline,
+            &self.warm_start.collecting_baseline,
+        ] {
+            if name.parse::<skyherd_sim::baseline::Method>().is_err() {
+                return bad("warm_start", "unknown baseline method name");
+            }
+        }
+        Ok(())
+    }
+
+    /// The curriculum stage in force at `progress` (fraction of DDPG steps done).
+    pub fn stage_at(&self, progress: f64) -> &CurriculumStage {
+        let stages = &self.curriculum.stages;
+        if !self.curriculum.enabled {
+            return &stages[stages.len() - 1];
+        }
+        stages
+            .iter()
+            .rev()
+            .find(|s| s.from_progress <= progress)
+            .unwrap_or(&stages[0])
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn round_trips_through_toml() {
+        let config = TrainConfig::default();
+        let back = TrainConfig::from_toml_str(&config.to_toml()).expect("own output parses");
+        assert_eq!(back, config);
+    }
+
+    #[test]
+    fn rejects_out_of_range_values() {
+        let err = TrainConfig::from_toml_str("[ddpg]\ngamma = 1.5").unwrap_err();
+        assert!(err.to_string().contains("ddpg.gamma"), "{err}");
+        let err =
+            TrainConfig::from_toml_str("[warm_start]\ndriving_baseline = \"nope\"").unwrap_err();
+        assert!(err.to_string().contains("warm_start"), "{err}");
+    }
+
+    #[test]
+    fn curriculum_moves_through_stages_and_can_be_switched_off() {
+        let mut c = TrainConfig::default();
+        assert_eq!(c.stage_at(0.0).targets, vec![1, 2, 4, 8]);
+        assert_eq!(c.stage_at(0.45).targets, vec![4, 8, 16, 32]);
+        assert!(c.stage_at(0.99).targets.contains(&128));
+        c.curriculum.enabled = false;
+        assert!(c.stage_at(0.0).targets.contains(&128));
+    }
+}
