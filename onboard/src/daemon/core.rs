@@ -1,0 +1,1091 @@
+//! The daemon's pure decision core: explicit state and time in, decisions out.
+//!
+//! [`DaemonCore`] is fed what arrives (uplink messages from the ground, autopilot heartbeats and
+//! positions) together with the daemon's time, and is asked once per control period
+//! ([`DaemonCore::tick`]) what to send: a velocity setpoint (MAVLink `LOCAL_NED`, m/s), maybe an
+//! autopilot command (arm, mode switch), and a [`Status`] that says what it is doing and why.
+//! It owns no socket and reads no clock, so the same code runs against wall time, against a
+//! simulator's lockstep clock, and in tests.
+//!
+//! # Mission flow
+//! On a start command the core streams zero-velocity setpoints, asks the autopilot to arm, and
+//! once the stream has run for [`CoreConfig::stream_before_mode_ms`] asks for the autopilot's
+//! external-control mode (PX4 OFFBOARD, ArduPilot GUIDED). When the autopilot reports armed and
+//! in that mode, the core flies: world snapshot (own position replaced by the autopilot's, which
+//! is fresher) -> [`crate::obs::encode`] -> [`Policy::act`] ->
+//! [`crate::obs::LocalFrame::action_to_world`] -> [`crate::safety::check`] ->
+//! [`crate::frame::sim_to_ned`].
+//! It holds (zero-velocity setpoints) when the uplink is stale, when the autopilot link is lost,
+//! after an abort, and when the pilot takes control away; every hold names its [`HoldReason`].
+//! Holds with a fresh own position still pass through the safety rules, so a drone outside the
+//! geofence or below the altitude band is steered back in rather than frozen there.
+//!
+//! Uplink bytes arrive as TUNNEL payloads ([`DaemonCore::on_tunnel_payload`]): the
+//! [`wire`](crate::wire) reassembler turns chunks into [`Uplink`] messages; bad chunks are
+//! counted and dropped.
+//!
+//! ```
+//! use skyherd_onboard::daemon::core::{CoreConfig, DaemonCore, Flavour, Millis, Policy, Status};
+//! use skyherd_onboard::obs::FEATURES;
+//! use skyherd_onboard::wire::{MissionAction, MissionCommand, Uplink};
+//! use skyherd_onboard::Task;
+//!
+//! /// A policy for the example: always "towards the goal".
+//! struct Forward;
+//! impl Policy for Forward {
+//!     fn act(&mut self, _task: Task, _features: &[f32; FEATURES]) -> [f32; 3] {
+//!         [1.0, 0.0, 0.0]
+//!     }
+//! }
+//!
+//! // System id 1, herder 0 in the ground's snapshots.
+//! let mut core = DaemonCore::new(CoreConfig::new(1, 0, Flavour::Px4), Forward);
+//! assert_eq!(core.tick(Millis(0)).status, Status::Idle);
+//! let start = MissionCommand {
+//!     sequence: 1,
+//!     task: Task::Driving,
+//!     goal: [5.0, 5.0],
+//!     goal_radius: 1.5,
+//!     action: MissionAction::Start,
+//! };
+//! core.on_uplink(Millis(0), Uplink::Command(start));
+//! // No autopilot heard yet: the core holds and says why.
+//! assert!(matches!(core.tick(Millis(100)).status, Status::Holding(_)));
+//! ```
+
+use std::fmt;
+
+use log::{info, warn};
+
+use crate::Task;
+use crate::actor::Actor;
+use crate::frame::{ned_to_sim, sim_to_ned};
+use crate::obs::{self, FEATURES, ObsError, ObsInput};
+use crate::safety::{self, Limits, Reasons, Situation};
+use crate::wire::{
+    MissionAction, MissionCommand, Reassembler, Uplink, WireError, WorldSnapshot, decode_uplink,
+};
+
+/// The daemon's time: milliseconds since an arbitrary start (boot of the daemon, or the
+/// autopilot's `time_boot_ms` in lockstep mode). Monotonic by contract of the caller.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, PartialOrd, Ord, Hash)]
+pub struct Millis(pub u64);
+
+impl Millis {
+    /// Milliseconds from `earlier` to `self`, zero if `earlier` is later.
+    pub fn since(self, earlier: Millis) -> u64 {
+        self.0.saturating_sub(earlier.0)
+    }
+}
+
+/// Which autopilot family the daemon talks to; they name their external-control mode
+/// differently.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Flavour {
+    /// PX4: OFFBOARD, main mode 6 (HEARTBEAT `custom_mode` = 6 << 16).
+    Px4,
+    /// ArduPilot Copter: GUIDED, mode 4.
+    ArduPilot,
+}
+
+impl Flavour {
+    /// The custom main mode to request with `MAV_CMD_DO_SET_MODE` (param 2).
+    pub fn control_mode(self) -> u8 {
+        match self {
+            Flavour::Px4 => 6,
+            Flavour::ArduPilot => 4,
+        }
+    }
+
+    /// Whether a HEARTBEAT `custom_mode` says the autopilot is in the external-control mode.
+    pub fn is_control_mode(self, custom_mode: u32) -> bool {
+        match self {
+            // PX4 packs main mode in bits 16..24 and sub mode in bits 24..32.
+            Flavour::Px4 => (custom_mode >> 16) & 0xFF == u32::from(self.control_mode()),
+            Flavour::ArduPilot => custom_mode == u32::from(self.control_mode()),
+        }
+    }
+
+    /// Human name of the external-control mode, for logs.
+    pub fn control_mode_name(self) -> &'static str {
+        match self {
+            Flavour::Px4 => "OFFBOARD",
+            Flavour::ArduPilot => "GUIDED",
+        }
+    }
+}
+
+/// Tunables of the core. Times in milliseconds of the daemon's clock; speeds in m/s.
+#[derive(Clone, Debug, PartialEq)]
+pub struct CoreConfig {
+    /// This drone's MAVLink system id (the autopilot's).
+    pub system_id: u8,
+    /// This drone's index in the world snapshots' herder list.
+    pub herder_index: usize,
+    /// Autopilot family.
+    pub flavour: Flavour,
+    /// Speed limit of this drone, m/s; the snapshot's limit applies too (the smaller wins).
+    pub max_speed: f32,
+    /// A world snapshot older than this is stale: hold.
+    pub uplink_timeout_ms: u64,
+    /// Nothing heard from the autopilot for this long: link lost, hold.
+    pub autopilot_timeout_ms: u64,
+    /// How long to stream setpoints before asking for the control mode (PX4 wants > 2 Hz for
+    /// 1 s).
+    pub stream_before_mode_ms: u64,
+    /// Arm and mode requests are repeated this often until the autopilot reports them done.
+    pub command_retry_ms: u64,
+}
+
+impl CoreConfig {
+    /// Defaults for a drone: 5 m/s, uplink stale after 1 s (the ground sends at >= 5 Hz),
+    /// autopilot lost after 1.5 s, 1.2 s of stream before the mode switch, retries every 1 s.
+    pub fn new(system_id: u8, herder_index: usize, flavour: Flavour) -> Self {
+        CoreConfig {
+            system_id,
+            herder_index,
+            flavour,
+            max_speed: 5.0,
+            uplink_timeout_ms: 1000,
+            autopilot_timeout_ms: 1500,
+            stream_before_mode_ms: 1200,
+            command_retry_ms: 1000,
+        }
+    }
+}
+
+/// The learned actor as the core sees it: features in, normalised action out.
+///
+/// The daemon flies [`Actor`] (int8, from a model file); tests may use anything.
+pub trait Policy {
+    /// Normalised action, each component in [-1, 1], in the encoder's
+    /// [`LocalFrame`](crate::obs::LocalFrame).
+    fn act(&mut self, task: Task, features: &[f32; FEATURES]) -> [f32; 3];
+}
+
+impl Policy for Actor<'_> {
+    fn act(&mut self, task: Task, features: &[f32; FEATURES]) -> [f32; 3] {
+        self.infer(task, features)
+    }
+}
+
+/// A command for the autopilot; the shell turns it into a `COMMAND_LONG`.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum AutopilotCommand {
+    /// `MAV_CMD_COMPONENT_ARM_DISARM`, param 1 = 1.
+    Arm,
+    /// `MAV_CMD_DO_SET_MODE`, param 1 = 1 (custom mode enabled), param 2 = `custom_main_mode`.
+    SetMode {
+        /// PX4 main mode or ArduPilot mode number.
+        custom_main_mode: u8,
+    },
+}
+
+/// A velocity setpoint for `SET_POSITION_TARGET_LOCAL_NED` (type_mask 0x0DC7).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Setpoint {
+    /// Velocity `[north, east, down]`, m/s, `MAV_FRAME_LOCAL_NED`.
+    pub velocity_ned: [f32; 3],
+}
+
+impl Setpoint {
+    /// Zero velocity: hover where you are.
+    pub const HOLD: Setpoint = Setpoint {
+        velocity_ned: [0.0; 3],
+    };
+}
+
+/// Where the mission start sequence stands.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Preparing {
+    /// Waiting for the autopilot to report armed.
+    Arming,
+    /// Armed; streaming setpoints long enough for the mode switch to be accepted.
+    Streaming,
+    /// Waiting for the autopilot to report the control mode.
+    SwitchingMode,
+}
+
+/// Why the core sends zero-velocity setpoints instead of the actor's.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum HoldReason {
+    /// Nothing heard from the autopilot within [`CoreConfig::autopilot_timeout_ms`].
+    AutopilotLost,
+    /// No LOCAL_POSITION_NED yet, or none within the autopilot timeout.
+    NoPosition,
+    /// No world snapshot since the mission started.
+    NoSnapshot,
+    /// The newest snapshot is older than [`CoreConfig::uplink_timeout_ms`].
+    UplinkStale {
+        /// Age of the newest snapshot, ms.
+        age_ms: u64,
+    },
+    /// The ground aborted the mission.
+    Aborted,
+    /// Someone else disarmed the vehicle or switched it out of the control mode while the
+    /// autopilot link was healthy: the pilot has it, the daemon does not take it back until
+    /// the next start command.
+    ControlReleased,
+    /// The snapshot could not be encoded (NaN, bad geometry, own index out of range).
+    BadObservation(ObsError),
+    /// The safety rules dropped the request (stale or non-finite data, unusable limits).
+    Safety(Reasons),
+}
+
+impl fmt::Display for HoldReason {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            HoldReason::AutopilotLost => f.write_str("autopilot link lost"),
+            HoldReason::NoPosition => f.write_str("no fresh position from the autopilot"),
+            HoldReason::NoSnapshot => f.write_str("no world snapshot yet"),
+            HoldReason::UplinkStale { age_ms } => {
+                write!(f, "uplink stale (newest snapshot {age_ms} ms old)")
+            }
+            HoldReason::Aborted => f.write_str("mission aborted by the ground"),
+            HoldReason::ControlReleased => {
+                f.write_str("control taken away (disarmed or mode changed by someone else)")
+            }
+            HoldReason::BadObservation(e) => write!(f, "bad observation: {e}"),
+            HoldReason::Safety(reasons) => write!(f, "safety: {reasons}"),
+        }
+    }
+}
+
+/// What the core is doing, as of the last tick.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Status {
+    /// No mission yet: no setpoints, no commands.
+    Idle,
+    /// Mission started; bringing the autopilot under control.
+    Preparing(Preparing),
+    /// Flying the actor's velocity, after the safety rules; the rules that changed it, if any
+    /// (fence, altitude, speed).
+    Flying(Reasons),
+    /// Sending zero-velocity setpoints.
+    Holding(HoldReason),
+}
+
+impl fmt::Display for Status {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Status::Idle => f.write_str("idle"),
+            Status::Preparing(p) => write!(f, "preparing ({p:?})"),
+            Status::Flying(reasons) if reasons.is_empty() => f.write_str("flying"),
+            Status::Flying(reasons) => write!(f, "flying ({reasons})"),
+            Status::Holding(r) => write!(f, "holding: {r}"),
+        }
+    }
+}
+
+/// What to send after one control tick.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Decision {
+    /// The setpoint to stream, if any (none while idle).
+    pub setpoint: Option<Setpoint>,
+    /// A command for the autopilot, if one is due.
+    pub command: Option<AutopilotCommand>,
+    /// What the core is doing and why.
+    pub status: Status,
+}
+
+/// Counts of what the core has seen, for logs and tests.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct CoreCounters {
+    /// Control ticks run.
+    pub ticks: u64,
+    /// Ticks that ended in a hold.
+    pub hold_ticks: u64,
+    /// World snapshots accepted.
+    pub snapshots: u64,
+    /// Snapshots dropped because their sequence number was not newer.
+    pub stale_snapshots: u64,
+    /// Mission commands accepted.
+    pub mission_commands: u64,
+    /// Mission commands dropped because their sequence number was not newer (repeats).
+    pub repeated_commands: u64,
+    /// Uplink chunks taken by the reassembler.
+    pub chunks: u64,
+    /// Chunks refused (bad header, stale message id) and messages dropped (CRC, decode).
+    pub bad_chunks: u64,
+    /// Autopilot commands issued.
+    pub commands_sent: u64,
+}
+
+/// What the autopilot last told us.
+#[derive(Clone, Copy, Debug, Default)]
+struct AutopilotView {
+    last_heard: Option<Millis>,
+    armed: bool,
+    in_control_mode: bool,
+    /// Own position, simulator frame, and when it arrived.
+    position: Option<([f32; 3], Millis)>,
+}
+
+#[derive(Clone, Copy, Debug)]
+struct ActiveMission {
+    task: Task,
+    goal: [f32; 2],
+    goal_radius: f32,
+    streaming_since: Option<Millis>,
+    last_arm_request: Option<Millis>,
+    last_mode_request: Option<Millis>,
+    /// The autopilot has been armed and in the control mode under this mission.
+    engaged: bool,
+    released: bool,
+    /// The autopilot link dropped during the mission; cleared on the first healthy tick.
+    link_was_lost: bool,
+}
+
+#[derive(Clone, Copy, Debug)]
+enum Mission {
+    Idle,
+    Active(ActiveMission),
+    Aborted,
+}
+
+/// The daemon's decision core. See the [module docs](self).
+pub struct DaemonCore<P> {
+    config: CoreConfig,
+    policy: P,
+    autopilot: AutopilotView,
+    world: Option<(WorldSnapshot, Millis)>,
+    last_command: Option<u32>,
+    reassembler: Box<Reassembler>,
+    mission: Mission,
+    last_status: Status,
+    counters: CoreCounters,
+    // Scratch buffers reused every tick so flying allocates nothing after warm-up.
+    herders: Vec<[f32; 3]>,
+    features: [f32; FEATURES],
+}
+
+impl<P: Policy> DaemonCore<P> {
+    /// A core with no mission, no world and no autopilot heard yet.
+    pub fn new(config: CoreConfig, policy: P) -> Self {
+        DaemonCore {
+            config,
+            policy,
+            autopilot: AutopilotView::default(),
+            world: None,
+            last_command: None,
+            reassembler: Box::new(Reassembler::new()),
+            mission: Mission::Idle,
+            last_status: Status::Idle,
+            counters: CoreCounters::default(),
+            herders: Vec::new(),
+            features: [0.0; FEATURES],
+        }
+    }
+
+    /// The configuration the core runs with.
+    pub fn config(&self) -> &CoreConfig {
+        &self.config
+    }
+
+    /// Status as of the last tick.
+    pub fn status(&self) -> Status {
+        self.last_status
+    }
+
+    /// What the core has counted so far.
+    pub fn counters(&self) -> CoreCounters {
+        self.counters
+    }
+
+    /// Own position (simulator frame, metres) as last reported by the autopilot.
+    pub fn own_position(&self) -> Option<[f32; 3]> {
+        self.autopilot.position.map(|(p, _)| p)
+    }
+
+    /// An autopilot HEARTBEAT: `base_mode` (MAV_MODE_FLAG bits; 0x80 = armed) and
+    /// `custom_mode` as sent.
+    pub fn on_heartbeat(&mut self, now: Millis, base_mode: u8, custom_mode: u32) {
+        const SAFETY_ARMED: u8 = 0x80;
+        let armed = base_mode & SAFETY_ARMED != 0;
+        let in_mode = self.config.flavour.is_control_mode(custom_mode);
+        if armed != self.autopilot.armed || in_mode != self.autopilot.in_control_mode {
+            info!(
+                "autopilot now {}, {} {}",
+                if armed { "armed" } else { "disarmed" },
+                if in_mode { "in" } else { "not in" },
+                self.config.flavour.control_mode_name()
+            );
+        }
+        self.autopilot.armed = armed;
+        self.autopilot.in_control_mode = in_mode;
+        self.autopilot.last_heard = Some(now);
+    }
+
+    /// An autopilot LOCAL_POSITION_NED: position `[north, east, down]`, metres.
+    pub fn on_local_position(&mut self, now: Millis, position_ned: [f32; 3]) {
+        self.autopilot.last_heard = Some(now);
+        if position_ned.iter().all(|x| x.is_finite()) {
+            self.autopilot.position = Some((ned_to_sim(position_ned), now));
+        } else {
+            warn!("ignoring non-finite LOCAL_POSITION_NED {position_ned:?}");
+        }
+    }
+
+    /// One uplink TUNNEL payload (a [`wire`](crate::wire) chunk). A chunk that completes a
+    /// message delivers it to [`on_uplink`](Self::on_uplink). Bad chunks and messages are
+    /// counted, logged and dropped; the error says why.
+    pub fn on_tunnel_payload(&mut self, now: Millis, chunk: &[u8]) -> Result<(), WireError> {
+        self.counters.chunks += 1;
+        let decoded = match self.reassembler.push(chunk) {
+            Ok(None) => return Ok(()),
+            Ok(Some(message)) => decode_uplink(message),
+            Err(e) => Err(e),
+        };
+        match decoded {
+            Ok(message) => {
+                self.on_uplink(now, message);
+                Ok(())
+            }
+            Err(e) => {
+                self.counters.bad_chunks += 1;
+                log::debug!("uplink chunk dropped: {e}");
+                Err(e)
+            }
+        }
+    }
+
+    /// A decoded uplink message from the ground.
+    pub fn on_uplink(&mut self, now: Millis, message: Uplink) {
+        match message {
+            Uplink::Snapshot(snapshot) => self.on_snapshot(now, snapshot),
+            Uplink::Command(command) => self.on_command(command),
+        }
+    }
+
+    fn on_snapshot(&mut self, now: Millis, snapshot: WorldSnapshot) {
+        if let Some((newest, _)) = &self.world
+            && snapshot.sequence <= newest.sequence
+        {
+            self.counters.stale_snapshots += 1;
+            return;
+        }
+        self.counters.snapshots += 1;
+        self.world = Some((snapshot, now));
+    }
+
+    fn on_command(&mut self, command: MissionCommand) {
+        // The ground repeats commands over a lossy link; only a newer one changes anything (a
+        // repeated start must not undo a pilot's takeover).
+        if self
+            .last_command
+            .is_some_and(|last| command.sequence <= last)
+        {
+            self.counters.repeated_commands += 1;
+            return;
+        }
+        self.last_command = Some(command.sequence);
+        self.counters.mission_commands += 1;
+        match command.action {
+            MissionAction::Start => {
+                let MissionCommand {
+                    task,
+                    goal,
+                    goal_radius,
+                    ..
+                } = command;
+                info!(
+                    "mission start: {task:?} to goal ({:.1}, {:.1}) r {goal_radius:.2} m",
+                    goal[0], goal[1]
+                );
+                self.mission = Mission::Active(ActiveMission {
+                    task,
+                    goal,
+                    goal_radius,
+                    streaming_since: None,
+                    last_arm_request: None,
+                    last_mode_request: None,
+                    engaged: false,
+                    released: false,
+                    link_was_lost: false,
+                });
+            }
+            MissionAction::Abort => {
+                info!("mission abort: holding");
+                self.mission = Mission::Aborted;
+            }
+        }
+    }
+
+    /// One control tick at `now`: what to send. Call at the control rate (>= 10 Hz).
+    pub fn tick(&mut self, now: Millis) -> Decision {
+        self.counters.ticks += 1;
+        let decision = self.decide(now);
+        if decision.command.is_some() {
+            self.counters.commands_sent += 1;
+        }
+        if matches!(decision.status, Status::Holding(_)) {
+            self.counters.hold_ticks += 1;
+        }
+        if !same_kind(&decision.status, &self.last_status) {
+            match decision.status {
+                Status::Holding(_) => warn!("{}", decision.status),
+                _ => info!("{}", decision.status),
+            }
+        }
+        self.last_status = decision.status;
+        decision
+    }
+
+    fn decide(&mut self, now: Millis) -> Decision {
+        let hold = |reason| Decision {
+            setpoint: Some(Setpoint::HOLD),
+            command: None,
+            status: Status::Holding(reason),
+        };
+        let link_ok = self
+            .autopilot
+            .last_heard
+            .is_some_and(|t| now.since(t) <= self.config.autopilot_timeout_ms);
+        let mission = match &mut self.mission {
+            Mission::Idle => {
+                return Decision {
+                    setpoint: None,
+                    command: None,
+                    status: Status::Idle,
+                };
+            }
+            Mission::Aborted => return hold(HoldReason::Aborted),
+            Mission::Active(mission) => mission,
+        };
+        if !link_ok {
+            mission.link_was_lost = true;
+            return hold(HoldReason::AutopilotLost);
+        }
+        let in_control = self.autopilot.armed && self.autopilot.in_control_mode;
+        if mission.link_was_lost {
+            mission.link_was_lost = false;
+            if mission.engaged && !in_control {
+                // The autopilot's own failsafe took over while it could not hear us; that was
+                // not a pilot's decision, so bring it back under control.
+                info!("autopilot link back; re-engaging after its failsafe");
+                mission.engaged = false;
+                mission.streaming_since = None;
+            }
+        }
+        if mission.engaged && !in_control {
+            mission.released = true;
+        }
+        if mission.released {
+            return hold(HoldReason::ControlReleased);
+        }
+        let streaming_since = *mission.streaming_since.get_or_insert(now);
+        if !in_control {
+            let retry = self.config.command_retry_ms;
+            let due = |last: Option<Millis>| last.is_none_or(|t| now.since(t) >= retry);
+            let (command, step) = if !self.autopilot.armed {
+                let command = due(mission.last_arm_request).then(|| {
+                    mission.last_arm_request = Some(now);
+                    AutopilotCommand::Arm
+                });
+                (command, Preparing::Arming)
+            } else if now.since(streaming_since) < self.config.stream_before_mode_ms {
+                (None, Preparing::Streaming)
+            } else {
+                let command = due(mission.last_mode_request).then(|| {
+                    mission.last_mode_request = Some(now);
+                    AutopilotCommand::SetMode {
+                        custom_main_mode: self.config.flavour.control_mode(),
+                    }
+                });
+                (command, Preparing::SwitchingMode)
+            };
+            return Decision {
+                setpoint: Some(Setpoint::HOLD),
+                command,
+                status: Status::Preparing(step),
+            };
+        }
+        mission.engaged = true;
+        let mission = *mission;
+        let (setpoint, status) = self.fly(now, &mission);
+        Decision {
+            setpoint: Some(setpoint),
+            command: None,
+            status,
+        }
+    }
+
+    /// The actor's velocity through the safety rules, or a hold and why.
+    fn fly(&mut self, now: Millis, mission: &ActiveMission) -> (Setpoint, Status) {
+        let hold = |reason| (Setpoint::HOLD, Status::Holding(reason));
+        let own = match self.autopilot.position {
+            Some((p, at)) if now.since(at) <= self.config.autopilot_timeout_ms => p,
+            _ => return hold(HoldReason::NoPosition),
+        };
+        let Some((world, received)) = self.world.as_ref() else {
+            return hold(HoldReason::NoSnapshot);
+        };
+        let age_ms = now.since(*received);
+        let max_speed = self.config.max_speed.min(world.max_speed);
+        // Own entry replaced by the autopilot's position, which is fresher than the ground's
+        // track; appended if the ground does not track this drone yet.
+        self.herders.clear();
+        self.herders.extend_from_slice(&world.herders);
+        let own_index = if self.config.herder_index < self.herders.len() {
+            self.herders[self.config.herder_index] = own;
+            self.config.herder_index
+        } else {
+            self.herders.push(own);
+            self.herders.len() - 1
+        };
+        let (request, own_reason) = if age_ms > self.config.uplink_timeout_ms {
+            ([0.0; 3], Some(HoldReason::UplinkStale { age_ms }))
+        } else {
+            let input = ObsInput {
+                own_index,
+                herders: &self.herders,
+                targets: &world.targets,
+                goal: mission.goal,
+                goal_radius: mission.goal_radius,
+                area: world.area,
+                max_speed,
+            };
+            match obs::encode(&input, &mut self.features) {
+                Ok(frame) => {
+                    let action = self.policy.act(mission.task, &self.features);
+                    (frame.action_to_world(action), None)
+                }
+                Err(e) => ([0.0; 3], Some(HoldReason::BadObservation(e))),
+            }
+        };
+        let mut limits = Limits::arena(world.area, max_speed);
+        limits.max_snapshot_age_s = self.config.uplink_timeout_ms as f32 / 1000.0;
+        let checked = safety::check(
+            &limits,
+            &Situation {
+                position: own,
+                velocity: request,
+                snapshot_age_s: age_ms as f32 / 1000.0,
+                snapshot_finite: world.is_finite(),
+            },
+        );
+        // Even a hold goes through the rules: outside the fence they steer back in.
+        let setpoint = Setpoint {
+            velocity_ned: sim_to_ned(checked.velocity),
+        };
+        let status = match own_reason {
+            Some(reason) => Status::Holding(reason),
+            None if checked.hold => Status::Holding(HoldReason::Safety(checked.reasons)),
+            None => Status::Flying(checked.reasons),
+        };
+        (setpoint, status)
+    }
+}
+
+/// Whether two statuses are the same for logging purposes (a hold's age changes every tick).
+fn same_kind(a: &Status, b: &Status) -> bool {
+    match (a, b) {
+        (
+            Status::Holding(HoldReason::UplinkStale { .. }),
+            Status::Holding(HoldReason::UplinkStale { .. }),
+        ) => true,
+        _ => a == b,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const ID: u8 = 7;
+    const ARMED: u8 = 0x80;
+    const PX4_OFFBOARD: u32 = 6 << 16;
+    /// PX4 POSCTL (main mode 3): what a pilot switches to.
+    const PX4_POSCTL: u32 = 3 << 16;
+
+    /// Always "full speed along the local first axis", i.e. from the flock towards the goal.
+    struct TowardsGoal;
+    impl Policy for TowardsGoal {
+        fn act(&mut self, _task: Task, _features: &[f32; FEATURES]) -> [f32; 3] {
+            [1.0, 0.0, 0.0]
+        }
+    }
+
+    fn command(sequence: u32, action: MissionAction) -> Uplink {
+        Uplink::Command(MissionCommand {
+            sequence,
+            task: Task::Driving,
+            goal: [50.0, 90.0],
+            goal_radius: 5.0,
+            action,
+        })
+    }
+
+    fn start() -> Uplink {
+        command(1, MissionAction::Start)
+    }
+
+    fn world(seq: u32) -> WorldSnapshot {
+        let mut w = WorldSnapshot::empty(Task::Driving, [100.0, 100.0, 10.0]);
+        w.sequence = seq;
+        w.goal = [50.0, 90.0];
+        w.goal_radius = 5.0;
+        // Herder 0 is another drone; herder 1 is us, where the ground last saw us (replaced).
+        w.herders
+            .extend_from_slice(&[[60.0, 30.0, 2.0], [0.0, 0.0, 0.0]])
+            .unwrap();
+        w.targets
+            .extend_from_slice(&[[49.0, 40.0], [51.0, 40.0], [50.0, 41.0], [50.0, 39.0]])
+            .unwrap();
+        w
+    }
+
+    /// Flock at (50, 40), goal due north at (50, 90); this drone at (45, 30), another at (60, 30).
+    fn snapshot(seq: u32) -> Uplink {
+        Uplink::Snapshot(world(seq))
+    }
+
+    fn core(flavour: Flavour) -> DaemonCore<TowardsGoal> {
+        DaemonCore::new(CoreConfig::new(ID, 1, flavour), TowardsGoal)
+    }
+
+    /// Feeds the autopilot's view at `t` ms: heartbeat and position (NED of sim (45, 30, 2)).
+    fn autopilot(core: &mut DaemonCore<TowardsGoal>, t: u64, armed: bool, custom_mode: u32) {
+        core.on_heartbeat(Millis(t), if armed { ARMED } else { 0 }, custom_mode);
+        core.on_local_position(Millis(t), sim_to_ned([45.0, 30.0, 2.0]));
+    }
+
+    /// A PX4 core driven through start to flying; returns it and the time reached (ms).
+    fn flying() -> (DaemonCore<TowardsGoal>, u64) {
+        let mut c = core(Flavour::Px4);
+        autopilot(&mut c, 0, true, PX4_OFFBOARD);
+        c.on_uplink(Millis(0), start());
+        c.on_uplink(Millis(0), snapshot(1));
+        let d = c.tick(Millis(0));
+        assert_eq!(d.status, Status::Flying(Reasons::NONE));
+        (c, 0)
+    }
+
+    #[test]
+    fn idle_sends_nothing() {
+        let mut c = core(Flavour::Px4);
+        autopilot(&mut c, 0, false, 0);
+        let d = c.tick(Millis(100));
+        assert_eq!(
+            d,
+            Decision {
+                setpoint: None,
+                command: None,
+                status: Status::Idle
+            }
+        );
+    }
+
+    #[test]
+    fn px4_start_streams_arms_then_switches_to_offboard_and_flies() {
+        let mut c = core(Flavour::Px4);
+        autopilot(&mut c, 0, false, 0);
+        c.on_uplink(Millis(0), start());
+        c.on_uplink(Millis(0), snapshot(1));
+
+        let d = c.tick(Millis(0));
+        assert_eq!(d.status, Status::Preparing(Preparing::Arming));
+        assert_eq!(d.command, Some(AutopilotCommand::Arm));
+        assert_eq!(d.setpoint, Some(Setpoint::HOLD));
+        // Not repeated before the retry period...
+        autopilot(&mut c, 500, false, 0);
+        assert_eq!(c.tick(Millis(500)).command, None);
+        // ...but after it.
+        c.on_uplink(Millis(1000), snapshot(2));
+        autopilot(&mut c, 1000, false, 0);
+        assert_eq!(c.tick(Millis(1000)).command, Some(AutopilotCommand::Arm));
+
+        // Armed, but the stream has run only 1.1 s of the 1.2 s PX4 wants.
+        autopilot(&mut c, 1100, true, 0);
+        let d = c.tick(Millis(1100));
+        assert_eq!(d.status, Status::Preparing(Preparing::Streaming));
+        assert_eq!((d.command, d.setpoint), (None, Some(Setpoint::HOLD)));
+
+        autopilot(&mut c, 1200, true, 0);
+        let d = c.tick(Millis(1200));
+        assert_eq!(d.status, Status::Preparing(Preparing::SwitchingMode));
+        assert_eq!(
+            d.command,
+            Some(AutopilotCommand::SetMode {
+                custom_main_mode: 6
+            })
+        );
+
+        c.on_uplink(Millis(1300), snapshot(3));
+        autopilot(&mut c, 1300, true, PX4_OFFBOARD);
+        let d = c.tick(Millis(1300));
+        assert_eq!(d.status, Status::Flying(Reasons::NONE));
+        assert_eq!(d.command, None);
+    }
+
+    #[test]
+    fn flying_velocity_is_ned_and_points_from_the_flock_to_the_goal() {
+        let (mut c, _) = flying();
+        let v = c.tick(Millis(100)).setpoint.unwrap().velocity_ned;
+        // Goal due north of the flock: full speed north (NED x), nothing east, nothing down.
+        assert!((v[0] - 5.0).abs() < 1e-3, "{v:?}");
+        assert!(v[1].abs() < 1e-3 && v[2].abs() < 1e-3, "{v:?}");
+    }
+
+    #[test]
+    fn own_position_comes_from_the_autopilot_not_the_snapshot() {
+        /// Records feature 22, own altitude / ceiling.
+        struct Altitude(f32);
+        impl Policy for Altitude {
+            fn act(&mut self, _task: Task, features: &[f32; FEATURES]) -> [f32; 3] {
+                self.0 = features[22];
+                [0.0; 3]
+            }
+        }
+        let mut c = DaemonCore::new(CoreConfig::new(ID, 1, Flavour::Px4), Altitude(-1.0));
+        c.on_heartbeat(Millis(0), ARMED, PX4_OFFBOARD);
+        // Autopilot: 4 m up (NED z = -4); the snapshot says 0 m.
+        c.on_local_position(Millis(0), [30.0, 45.0, -4.0]);
+        c.on_uplink(Millis(0), start());
+        c.on_uplink(Millis(0), snapshot(1));
+        assert_eq!(c.tick(Millis(0)).status, Status::Flying(Reasons::NONE));
+        assert!(
+            (c.policy.0 - 0.4).abs() < 1e-6,
+            "altitude feature {}",
+            c.policy.0
+        );
+        assert_eq!(c.own_position(), Some([45.0, 30.0, 4.0]));
+    }
+
+    #[test]
+    fn ardupilot_uses_guided_mode_4() {
+        let mut c = core(Flavour::ArduPilot);
+        autopilot(&mut c, 0, true, 0);
+        c.on_uplink(Millis(0), start());
+        c.on_uplink(Millis(0), snapshot(1));
+        assert_eq!(
+            c.tick(Millis(0)).status,
+            Status::Preparing(Preparing::Streaming)
+        );
+        autopilot(&mut c, 1200, true, 0);
+        c.on_uplink(Millis(1200), snapshot(2));
+        let d = c.tick(Millis(1200));
+        assert_eq!(
+            d.command,
+            Some(AutopilotCommand::SetMode {
+                custom_main_mode: 4
+            })
+        );
+        autopilot(&mut c, 1300, true, 4);
+        assert_eq!(c.tick(Millis(1300)).status, Status::Flying(Reasons::NONE));
+        // PX4's OFFBOARD number means nothing to ArduPilot.
+        assert!(!Flavour::ArduPilot.is_control_mode(PX4_OFFBOARD));
+        assert!(Flavour::Px4.is_control_mode(PX4_OFFBOARD | (1 << 24)));
+    }
+
+    #[test]
+    fn stale_uplink_holds_and_a_fresh_snapshot_resumes() {
+        let (mut c, _) = flying();
+        autopilot(&mut c, 1000, true, PX4_OFFBOARD);
+        assert_eq!(c.tick(Millis(1000)).status, Status::Flying(Reasons::NONE));
+        autopilot(&mut c, 1001, true, PX4_OFFBOARD);
+        let d = c.tick(Millis(1001));
+        assert_eq!(
+            d.status,
+            Status::Holding(HoldReason::UplinkStale { age_ms: 1001 })
+        );
+        assert_eq!(d.setpoint, Some(Setpoint::HOLD));
+        c.on_uplink(Millis(1100), snapshot(2));
+        autopilot(&mut c, 1100, true, PX4_OFFBOARD);
+        assert_eq!(c.tick(Millis(1100)).status, Status::Flying(Reasons::NONE));
+    }
+
+    #[test]
+    fn out_of_order_snapshots_are_ignored() {
+        let (mut c, _) = flying();
+        c.on_uplink(Millis(900), snapshot(1));
+        autopilot(&mut c, 1100, true, PX4_OFFBOARD);
+        // Seq 1 again is not news: the world is still the one from t = 0.
+        assert!(matches!(
+            c.tick(Millis(1100)).status,
+            Status::Holding(HoldReason::UplinkStale { .. })
+        ));
+        assert_eq!(c.counters().stale_snapshots, 1);
+    }
+
+    #[test]
+    fn no_snapshot_holds() {
+        let mut c = core(Flavour::Px4);
+        autopilot(&mut c, 0, true, PX4_OFFBOARD);
+        c.on_uplink(Millis(0), start());
+        assert_eq!(
+            c.tick(Millis(0)).status,
+            Status::Holding(HoldReason::NoSnapshot)
+        );
+    }
+
+    #[test]
+    fn lost_autopilot_holds_and_resumes_when_it_is_back_in_control() {
+        let (mut c, _) = flying();
+        c.on_uplink(Millis(1600), snapshot(2));
+        let d = c.tick(Millis(1600));
+        assert_eq!(d.status, Status::Holding(HoldReason::AutopilotLost));
+        assert_eq!((d.setpoint, d.command), (Some(Setpoint::HOLD), None));
+        autopilot(&mut c, 1700, true, PX4_OFFBOARD);
+        assert_eq!(c.tick(Millis(1700)).status, Status::Flying(Reasons::NONE));
+    }
+
+    #[test]
+    fn autopilot_failsafe_during_link_loss_is_re_engaged() {
+        let (mut c, _) = flying();
+        assert_eq!(
+            c.tick(Millis(1600)).status,
+            Status::Holding(HoldReason::AutopilotLost)
+        );
+        // Back, but its own failsafe has left OFFBOARD: that was no pilot; take it back.
+        c.on_uplink(Millis(1700), snapshot(2));
+        autopilot(&mut c, 1700, true, PX4_POSCTL);
+        let d = c.tick(Millis(1700));
+        assert_eq!(d.status, Status::Preparing(Preparing::Streaming));
+        autopilot(&mut c, 2900, true, PX4_POSCTL);
+        c.on_uplink(Millis(2900), snapshot(3));
+        assert_eq!(
+            c.tick(Millis(2900)).command,
+            Some(AutopilotCommand::SetMode {
+                custom_main_mode: 6
+            })
+        );
+    }
+
+    #[test]
+    fn a_pilot_taking_over_is_not_fought() {
+        let (mut c, _) = flying();
+        autopilot(&mut c, 100, true, PX4_POSCTL);
+        for t in [100, 1500, 3000] {
+            autopilot(&mut c, t, true, PX4_POSCTL);
+            let d = c.tick(Millis(t));
+            assert_eq!(d.status, Status::Holding(HoldReason::ControlReleased));
+            assert_eq!(d.command, None);
+        }
+        // Disarming counts the same.
+        let (mut c, _) = flying();
+        autopilot(&mut c, 100, false, PX4_OFFBOARD);
+        assert_eq!(
+            c.tick(Millis(100)).status,
+            Status::Holding(HoldReason::ControlReleased)
+        );
+        // A repeated start is not a new one...
+        c.on_uplink(Millis(200), start());
+        autopilot(&mut c, 200, false, PX4_OFFBOARD);
+        assert_eq!(
+            c.tick(Millis(200)).status,
+            Status::Holding(HoldReason::ControlReleased)
+        );
+        // ...a new start command re-engages.
+        c.on_uplink(Millis(200), command(2, MissionAction::Start));
+        autopilot(&mut c, 200, false, PX4_OFFBOARD);
+        assert_eq!(c.tick(Millis(200)).command, Some(AutopilotCommand::Arm));
+    }
+
+    #[test]
+    fn abort_holds_until_the_next_start() {
+        let (mut c, _) = flying();
+        c.on_uplink(Millis(100), command(2, MissionAction::Abort));
+        for t in [100, 200, 5000] {
+            autopilot(&mut c, t, true, PX4_OFFBOARD);
+            let d = c.tick(Millis(t));
+            assert_eq!(d.status, Status::Holding(HoldReason::Aborted));
+            assert_eq!((d.setpoint, d.command), (Some(Setpoint::HOLD), None));
+        }
+        c.on_uplink(Millis(5000), command(3, MissionAction::Start));
+        c.on_uplink(Millis(5000), snapshot(2));
+        assert_eq!(c.tick(Millis(5000)).status, Status::Flying(Reasons::NONE));
+    }
+
+    #[test]
+    fn a_snapshot_with_nan_holds_with_the_reason() {
+        let (mut c, _) = flying();
+        let Uplink::Snapshot(mut bad) = snapshot(2) else {
+            unreachable!()
+        };
+        bad.targets[0][1] = f32::NAN;
+        c.on_uplink(Millis(100), Uplink::Snapshot(bad));
+        autopilot(&mut c, 100, true, PX4_OFFBOARD);
+        assert_eq!(
+            c.tick(Millis(100)).status,
+            Status::Holding(HoldReason::BadObservation(ObsError::NonFinite))
+        );
+    }
+
+    #[test]
+    fn non_finite_positions_are_ignored() {
+        let (mut c, _) = flying();
+        c.on_local_position(Millis(50), [f32::NAN, 0.0, 0.0]);
+        assert_eq!(c.own_position(), Some([45.0, 30.0, 2.0]));
+    }
+
+    #[test]
+    fn outside_the_fence_a_hold_still_steers_back_in() {
+        let (mut c, _) = flying();
+        c.on_uplink(Millis(100), command(2, MissionAction::Abort));
+        // Aborted: plain zero.
+        autopilot(&mut c, 100, true, PX4_OFFBOARD);
+        assert_eq!(c.tick(Millis(100)).setpoint, Some(Setpoint::HOLD));
+        // Uplink stale while 0.2 m above the ground (below the 0.5 m band): climb back in.
+        let (mut c, _) = flying();
+        c.on_heartbeat(Millis(1500), ARMED, PX4_OFFBOARD);
+        c.on_local_position(Millis(1500), sim_to_ned([45.0, 30.0, 0.2]));
+        let d = c.tick(Millis(1500));
+        assert!(matches!(
+            d.status,
+            Status::Holding(HoldReason::UplinkStale { .. })
+        ));
+        let v = d.setpoint.unwrap().velocity_ned;
+        assert!(
+            v[2] < 0.0,
+            "NED down velocity {v:?} should be negative (climbing)"
+        );
+    }
+
+    #[test]
+    fn the_fence_trims_the_actor_and_says_so() {
+        let mut c = core(Flavour::Px4);
+        // 0.5 m from the north fence (at 99 m), flying north at 5 m/s.
+        c.on_heartbeat(Millis(0), ARMED, PX4_OFFBOARD);
+        c.on_local_position(Millis(0), sim_to_ned([45.0, 98.5, 2.0]));
+        c.on_uplink(Millis(0), start());
+        let mut w = world(1);
+        w.goal = [50.0, 99.5];
+        c.on_uplink(Millis(0), Uplink::Snapshot(w));
+        let d = c.tick(Millis(0));
+        let Status::Flying(reasons) = d.status else {
+            panic!("{:?}", d.status)
+        };
+        assert!(reasons.contains(Reasons::FENCE_LIMITED), "{reasons}");
+        assert!(d.setpoint.unwrap().velocity_ned[0] <= 0.5 + 1e-4);
+    }
+
+    #[test]
+    fn tunnel_chunks_are_reassembled_and_bad_ones_counted() {
+        use crate::wire::{MAX_MESSAGE, chunks, encode_uplink};
+        let mut c = core(Flavour::Px4);
+        let mut buffer = [0u8; MAX_MESSAGE];
+        let bytes = encode_uplink(&snapshot(1), &mut buffer).unwrap();
+        let mut sent: Vec<_> = chunks(10, bytes).unwrap().collect();
+        sent.reverse();
+        for chunk in &sent {
+            c.on_tunnel_payload(Millis(0), chunk.as_bytes()).unwrap();
+        }
+        assert_eq!(c.counters().snapshots, 1);
+        assert!(c.on_tunnel_payload(Millis(0), &[0xFF; 20]).is_err());
+        assert!(c.on_tunnel_payload(Millis(0), &[]).is_err());
+        let n = c.counters();
+        assert_eq!((n.chunks, n.bad_chunks), (sent.len() as u64 + 2, 2));
+    }
+
+    #[test]
+    fn counters_count() {
+        let (mut c, _) = flying();
+        c.tick(Millis(1600));
+        let n = c.counters();
+        assert_eq!(
+            (n.ticks, n.hold_ticks, n.snapshots, n.mission_commands),
+            (2, 1, 1, 1)
+        );
+    }
+}

@@ -1,0 +1,766 @@
+//! The daemon's thin I/O shell: MAVLink links, signing checks, heartbeats, clocks.
+//!
+//! Two links, each a [`mavlink`] connection read by its own thread that only forwards what it
+//! reads over a channel; the daemon thread owns the [`DaemonCore`] and does all the deciding:
+//!
+//! * **autopilot** (`udpout:127.0.0.1:14540`, `udpin:0.0.0.0:14540`, `serial:/dev/ttyTHS1:921600`,
+//!   `tcpout:…`): HEARTBEAT and LOCAL_POSITION_NED in; SET_POSITION_TARGET_LOCAL_NED
+//!   (frame LOCAL_NED, type_mask [`VELOCITY_ONLY_TYPE_MASK`]), COMMAND_LONG and our HEARTBEAT
+//!   out. Unsigned.
+//! * **ground** (`udpin:0.0.0.0:14600`, …): TUNNEL frames (payload type 0) carrying the uplink
+//!   chunks in. With a signing key every frame must carry a valid MAVLink 2 signature; unsigned
+//!   and wrongly signed frames are dropped and counted ([`UplinkGate`]). Our HEARTBEAT out,
+//!   signed with the same key.
+//!
+//! Clocks ([`ClockMode`]): wall clock (ticks at `--rate-hz`), or lockstep with a simulator, where
+//! the daemon's time is the autopilot's `time_boot_ms` and every LOCAL_POSITION_NED triggers one
+//! control tick, so the loop runs as fast as the simulator feeds it.
+
+use std::fmt;
+use std::io;
+use std::net::{SocketAddr, UdpSocket};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::mpsc::{self, Receiver, RecvTimeoutError, Sender};
+use std::thread;
+use std::time::{Duration, Instant};
+
+use log::{debug, info, warn};
+use mavlink::dialects::common::{
+    COMMAND_LONG_DATA, HEARTBEAT_DATA, MavAutopilot, MavCmd, MavFrame, MavMessage, MavModeFlag,
+    MavResult, MavState, MavTunnelPayloadType, MavType, PositionTargetTypemask,
+    SET_POSITION_TARGET_LOCAL_NED_DATA,
+};
+use mavlink::error::MessageReadError;
+use mavlink::{
+    Connectable, MAVLinkMessageRaw, MAVLinkV2MessageRaw, MavConnection, MavHeader, Message,
+    SigningConfig, SigningData, UdpConfig, UdpMode,
+};
+
+use super::core::{AutopilotCommand, DaemonCore, Millis, Policy, Setpoint};
+
+/// Our MAVLink component id: `MAV_COMP_ID_ONBOARD_COMPUTER`.
+pub const COMPONENT_ID: u8 = 191;
+/// The autopilot's component id: `MAV_COMP_ID_AUTOPILOT1`.
+pub const AUTOPILOT_COMPONENT_ID: u8 = 1;
+/// SET_POSITION_TARGET_LOCAL_NED type_mask for "velocity only": ignore position,
+/// acceleration, yaw and yaw rate.
+pub const VELOCITY_ONLY_TYPE_MASK: u16 = 0x0DC7;
+/// HEARTBEAT period, ms of the daemon's clock.
+pub const HEARTBEAT_PERIOD_MS: u64 = 1000;
+/// Length of a MAVLink 2 signing key.
+pub const KEY_LEN: usize = 32;
+
+type Link = mavlink::Connection<MavMessage>;
+
+/// Where the daemon's time comes from.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum ClockMode {
+    /// Wall clock; one control tick every `1 / rate_hz` seconds.
+    Wall {
+        /// Control rate, Hz (>= 10 for PX4 OFFBOARD).
+        rate_hz: f32,
+    },
+    /// The autopilot's `time_boot_ms`; one control tick per LOCAL_POSITION_NED.
+    Simulator,
+}
+
+/// How to reach the autopilot and the ground.
+#[derive(Clone, Debug)]
+pub struct LinkOptions {
+    /// Autopilot address, `mavlink::connect` syntax (`udpout:host:port`, `udpin:host:port`,
+    /// `serial:/dev/tty…:baud`, `tcpout:host:port`).
+    pub autopilot: String,
+    /// Ground address, same syntax.
+    pub ground: String,
+    /// MAVLink 2 signing key for the ground link; `None` accepts unsigned uplink (tests only).
+    pub signing_key: Option<[u8; KEY_LEN]>,
+    /// Clock source.
+    pub clock: ClockMode,
+}
+
+/// What can go wrong in the shell.
+#[derive(Debug)]
+pub enum IoError {
+    /// A link could not be opened.
+    Connect {
+        /// Which link (`autopilot` or `ground`).
+        link: &'static str,
+        /// The address given.
+        address: String,
+        /// Why.
+        source: io::Error,
+    },
+    /// The key file is not a 32-byte key.
+    BadKey(String),
+    /// The control rate is not a positive, finite number of Hz.
+    BadRate(f32),
+    /// Both reader threads stopped.
+    LinksClosed,
+}
+
+impl fmt::Display for IoError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            IoError::Connect {
+                link,
+                address,
+                source,
+            } => write!(f, "cannot open the {link} link {address:?}: {source}"),
+            IoError::BadKey(why) => write!(f, "bad signing key: {why}"),
+            IoError::BadRate(hz) => {
+                write!(f, "control rate must be a positive number of Hz, got {hz}")
+            }
+            IoError::LinksClosed => f.write_str("both MAVLink links closed"),
+        }
+    }
+}
+
+impl std::error::Error for IoError {
+    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+        match self {
+            IoError::Connect { source, .. } => Some(source),
+            _ => None,
+        }
+    }
+}
+
+/// Parses a signing key: exactly 32 raw bytes, or 64 hex digits (surrounding whitespace
+/// ignored).
+///
+/// ```
+/// use skyherd_onboard::daemon::io::parse_key;
+/// assert_eq!(parse_key(&[7u8; 32]).unwrap(), [7u8; 32]);
+/// assert_eq!(parse_key("ab".repeat(32).as_bytes()).unwrap(), [0xab; 32]);
+/// assert!(parse_key(b"too short").is_err());
+/// ```
+pub fn parse_key(bytes: &[u8]) -> Result<[u8; KEY_LEN], IoError> {
+    if let Ok(raw) = <[u8; KEY_LEN]>::try_from(bytes) {
+        return Ok(raw);
+    }
+    let text = std::str::from_utf8(bytes).map(str::trim).map_err(|_| {
+        IoError::BadKey(format!(
+            "{} bytes, expected 32 raw bytes or 64 hex digits",
+            bytes.len()
+        ))
+    })?;
+    if text.len() != 2 * KEY_LEN || !text.bytes().all(|b| b.is_ascii_hexdigit()) {
+        return Err(IoError::BadKey(format!(
+            "{} bytes, expected 32 raw bytes or 64 hex digits",
+            bytes.len()
+        )));
+    }
+    let mut key = [0u8; KEY_LEN];
+    for (k, pair) in key.iter_mut().zip(text.as_bytes().chunks(2)) {
+        // Both digits were checked above.
+        let digits = std::str::from_utf8(pair).unwrap_or("00");
+        *k = u8::from_str_radix(digits, 16).unwrap_or(0);
+    }
+    Ok(key)
+}
+
+/// Why an uplink frame was dropped.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum UplinkRejection {
+    /// Signing is required and the frame carries no signature (or is MAVLink 1).
+    Unsigned,
+    /// The signature does not match the key, or replays an old timestamp.
+    BadSignature,
+    /// The payload does not parse as a `common` message (bad enum value, unknown id).
+    Malformed,
+}
+
+/// Counts of the ground link's traffic.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct UplinkCounters {
+    /// Frames that passed the gate.
+    pub accepted: u64,
+    /// Dropped: no signature while one is required.
+    pub unsigned: u64,
+    /// Dropped: wrong signature or replay.
+    pub bad_signature: u64,
+    /// Dropped: payload does not parse.
+    pub malformed: u64,
+    /// TUNNEL frames for another system, ignored.
+    pub not_for_us: u64,
+    /// TUNNEL chunks handed to the core.
+    pub tunnel_chunks: u64,
+}
+
+/// Checks ground frames: signature first, then that the payload parses. Pure apart from the
+/// signing state's replay protection (which reads the system clock, as the MAVLink signing
+/// specification asks).
+pub struct UplinkGate {
+    signing: Option<SigningData>,
+    counters: UplinkCounters,
+}
+
+impl UplinkGate {
+    /// A gate requiring signatures made with `key`, or accepting everything without one.
+    pub fn new(key: Option<[u8; KEY_LEN]>) -> Self {
+        UplinkGate {
+            signing: key.map(|k| SigningData::from_config(SigningConfig::new(k, 0, true, false))),
+            counters: UplinkCounters::default(),
+        }
+    }
+
+    /// What the gate has counted.
+    pub fn counters(&self) -> UplinkCounters {
+        self.counters
+    }
+
+    /// Checks one raw frame and parses it.
+    pub fn accept(
+        &mut self,
+        raw: &MAVLinkMessageRaw,
+    ) -> Result<(MavHeader, MavMessage), UplinkRejection> {
+        let verdict = self.check(raw);
+        match verdict {
+            Ok(_) => self.counters.accepted += 1,
+            Err(UplinkRejection::Unsigned) => self.counters.unsigned += 1,
+            Err(UplinkRejection::BadSignature) => self.counters.bad_signature += 1,
+            Err(UplinkRejection::Malformed) => self.counters.malformed += 1,
+        }
+        verdict
+    }
+
+    fn check(&self, raw: &MAVLinkMessageRaw) -> Result<(MavHeader, MavMessage), UplinkRejection> {
+        const IFLAG_SIGNED: u8 = 0x01;
+        if let Some(signing) = &self.signing {
+            let MAVLinkMessageRaw::V2(v2) = raw else {
+                return Err(UplinkRejection::Unsigned);
+            };
+            if v2.incompatibility_flags() & IFLAG_SIGNED == 0 {
+                return Err(UplinkRejection::Unsigned);
+            }
+            if !signing.verify_signature(v2) {
+                return Err(UplinkRejection::BadSignature);
+            }
+        }
+        let message = MavMessage::parse(raw.version(), raw.message_id(), raw.payload())
+            .map_err(|_| UplinkRejection::Malformed)?;
+        let header = MavHeader {
+            system_id: raw.system_id(),
+            component_id: raw.component_id(),
+            sequence: raw.sequence(),
+        };
+        Ok((header, message))
+    }
+
+    /// Signs `message` for the ground if a key is set; plain MAVLink 2 otherwise.
+    fn seal(&self, header: MavHeader, message: &MavMessage) -> MAVLinkMessageRaw {
+        let mut raw = MAVLinkV2MessageRaw::new();
+        match &self.signing {
+            Some(signing) => {
+                raw.serialize_message_for_signing(header, message);
+                signing.sign_message(&mut raw);
+            }
+            None => raw.serialize_message(header, message),
+        }
+        MAVLinkMessageRaw::V2(raw)
+    }
+}
+
+/// The daemon's time in lockstep mode, from the autopilot's `time_boot_ms`, kept monotonic
+/// across an autopilot reboot (its clock restarting from zero).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct BootClock {
+    offset_ms: u64,
+    last_raw: Option<u32>,
+}
+
+impl BootClock {
+    /// The daemon time for a `time_boot_ms` just received.
+    ///
+    /// ```
+    /// use skyherd_onboard::daemon::{core::Millis, io::BootClock};
+    /// let mut clock = BootClock::default();
+    /// assert_eq!(clock.update(500), Millis(500));
+    /// assert_eq!(clock.update(900), Millis(900));
+    /// // The autopilot rebooted: time goes on from where it was.
+    /// assert_eq!(clock.update(100), Millis(1000));
+    /// ```
+    pub fn update(&mut self, time_boot_ms: u32) -> Millis {
+        if let Some(last) = self.last_raw
+            && time_boot_ms < last
+        {
+            // A small step back is reordering (UDP); a big one is a reboot.
+            if last - time_boot_ms < 1000 {
+                return Millis(self.offset_ms + u64::from(last));
+            }
+            info!("autopilot clock restarted ({last} ms -> {time_boot_ms} ms)");
+            self.offset_ms += u64::from(last);
+        }
+        self.last_raw = Some(time_boot_ms);
+        Millis(self.offset_ms + u64::from(time_boot_ms))
+    }
+}
+
+/// Counts of the autopilot link's traffic.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct AutopilotCounters {
+    /// Messages from our autopilot that were used.
+    pub received: u64,
+    /// Messages from other systems, ignored.
+    pub other_systems: u64,
+    /// Frames that did not parse (unknown message, bad enum value).
+    pub malformed: u64,
+    /// Setpoints sent.
+    pub setpoints_sent: u64,
+    /// Commands sent.
+    pub commands_sent: u64,
+    /// Commands the autopilot refused (COMMAND_ACK other than accepted / in progress).
+    pub commands_refused: u64,
+}
+
+/// Everything the shell has counted, for logs and tests.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct ShellCounters {
+    /// Ground link.
+    pub uplink: UplinkCounters,
+    /// Autopilot link.
+    pub autopilot: AutopilotCounters,
+    /// Heartbeats sent (to both links).
+    pub heartbeats_sent: u64,
+}
+
+enum Event {
+    Autopilot(MavHeader, Box<MavMessage>),
+    AutopilotMalformed,
+    Ground(Box<MAVLinkMessageRaw>),
+    GroundMalformed,
+}
+
+/// A running daemon: both links open, the core inside.
+pub struct Daemon<P> {
+    core: DaemonCore<P>,
+    autopilot: Arc<Link>,
+    ground: Arc<Link>,
+    ground_local: Option<SocketAddr>,
+    autopilot_local: Option<SocketAddr>,
+    events: Receiver<Event>,
+    gate: UplinkGate,
+    clock: ClockMode,
+    boot_clock: BootClock,
+    counters: ShellCounters,
+    stop: Arc<AtomicBool>,
+}
+
+/// How long reader threads block before looking at the stop flag.
+const READ_TIMEOUT: Duration = Duration::from_millis(100);
+
+/// Opens a link. UDP addresses are bound here (rather than inside `mavlink::connect`) so that
+/// the bound address is known (`udpin:127.0.0.1:0` picks a free port) and reads time out.
+fn open_link(link: &'static str, address: &str) -> Result<(Link, Option<SocketAddr>), IoError> {
+    let err = |source| IoError::Connect {
+        link,
+        address: address.to_string(),
+        source,
+    };
+    let udp = |mode, socket: UdpSocket| -> Result<(Link, Option<SocketAddr>), IoError> {
+        socket.set_read_timeout(Some(READ_TIMEOUT)).map_err(err)?;
+        let local = socket.local_addr().map_err(err)?;
+        let link = UdpConfig::from_socket(socket, mode)
+            .map_err(err)?
+            .connect::<MavMessage>()
+            .map_err(err)?;
+        Ok((link, Some(local)))
+    };
+    if let Some(target) = address.strip_prefix("udpin:") {
+        let socket = UdpSocket::bind(target).map_err(err)?;
+        udp(UdpMode::Udpin, socket)
+    } else if let Some(target) = address.strip_prefix("udpout:") {
+        let socket = UdpSocket::bind("0.0.0.0:0").map_err(err)?;
+        socket.connect(target).map_err(err)?;
+        udp(UdpMode::Udpout, socket)
+    } else {
+        let link = mavlink::connect::<MavMessage>(address).map_err(err)?;
+        Ok((link, None))
+    }
+}
+
+/// Reads one link until `stop`; `raw` selects unparsed frames (the ground link, whose
+/// signatures are checked by the daemon thread so that rejections can be counted).
+fn spawn_reader(
+    name: &'static str,
+    link: Arc<Link>,
+    raw: bool,
+    events: Sender<Event>,
+    stop: Arc<AtomicBool>,
+) {
+    let body = move || {
+        while !stop.load(Ordering::Relaxed) {
+            let event = if raw {
+                match link.recv_raw() {
+                    Ok(frame) => Ok(Event::Ground(Box::new(frame))),
+                    Err(e) => Err(e),
+                }
+            } else {
+                match link.recv() {
+                    Ok((header, message)) => Ok(Event::Autopilot(header, Box::new(message))),
+                    Err(e) => Err(e),
+                }
+            };
+            let event = match event {
+                Ok(event) => event,
+                Err(MessageReadError::Parse(e)) => {
+                    debug!("{name}: dropped a frame: {e}");
+                    if raw {
+                        Event::GroundMalformed
+                    } else {
+                        Event::AutopilotMalformed
+                    }
+                }
+                Err(MessageReadError::Io(e)) => {
+                    match e.kind() {
+                        io::ErrorKind::WouldBlock | io::ErrorKind::TimedOut => {}
+                        // Refused (nobody listening yet on a UDP peer), empty datagram, serial
+                        // hiccup: wait a little and keep reading.
+                        _ => {
+                            debug!("{name}: read error: {e}");
+                            thread::sleep(Duration::from_millis(20));
+                        }
+                    }
+                    continue;
+                }
+            };
+            if events.send(event).is_err() {
+                return;
+            }
+        }
+    };
+    // A reader that cannot start leaves the daemon deaf on that link, which the core reports
+    // as a hold; the spawn error itself is logged.
+    if let Err(e) = thread::Builder::new()
+        .name(format!("{name}-reader"))
+        .spawn(body)
+    {
+        warn!("cannot start the {name} reader: {e}");
+    }
+}
+
+impl<P: Policy> Daemon<P> {
+    /// Opens both links and starts their reader threads.
+    pub fn connect(options: &LinkOptions, core: DaemonCore<P>) -> Result<Self, IoError> {
+        if let ClockMode::Wall { rate_hz } = options.clock
+            && !(rate_hz.is_finite() && rate_hz > 0.0)
+        {
+            return Err(IoError::BadRate(rate_hz));
+        }
+        let (autopilot, autopilot_local) = open_link("autopilot", &options.autopilot)?;
+        let (ground, ground_local) = open_link("ground", &options.ground)?;
+        let autopilot = Arc::new(autopilot);
+        let ground = Arc::new(ground);
+        let stop = Arc::new(AtomicBool::new(false));
+        let (tx, rx) = mpsc::channel();
+        spawn_reader(
+            "autopilot",
+            autopilot.clone(),
+            false,
+            tx.clone(),
+            stop.clone(),
+        );
+        spawn_reader("ground", ground.clone(), true, tx, stop.clone());
+        if options.signing_key.is_none() {
+            warn!("no signing key: uplink frames are accepted unauthenticated");
+        }
+        info!(
+            "links open: autopilot {} ({}), ground {} ({})",
+            options.autopilot,
+            autopilot_local.map_or("-".into(), |a| a.to_string()),
+            options.ground,
+            ground_local.map_or("-".into(), |a| a.to_string()),
+        );
+        Ok(Daemon {
+            core,
+            autopilot,
+            ground,
+            ground_local,
+            autopilot_local,
+            events: rx,
+            gate: UplinkGate::new(options.signing_key),
+            clock: options.clock,
+            boot_clock: BootClock::default(),
+            counters: ShellCounters::default(),
+            stop,
+        })
+    }
+
+    /// The local address of the ground link, if it is UDP.
+    pub fn ground_address(&self) -> Option<SocketAddr> {
+        self.ground_local
+    }
+
+    /// The local address of the autopilot link, if it is UDP.
+    pub fn autopilot_address(&self) -> Option<SocketAddr> {
+        self.autopilot_local
+    }
+
+    /// A flag that ends [`run`](Self::run) when set (from a signal handler or a test).
+    pub fn stop_flag(&self) -> Arc<AtomicBool> {
+        self.stop.clone()
+    }
+
+    /// The core, for status and counters.
+    pub fn core(&self) -> &DaemonCore<P> {
+        &self.core
+    }
+
+    /// What the shell has counted.
+    pub fn counters(&self) -> ShellCounters {
+        ShellCounters {
+            uplink: self.gate.counters(),
+            ..self.counters
+        }
+    }
+
+    /// Runs until the stop flag is set.
+    pub fn run(&mut self) -> Result<(), IoError> {
+        let started = Instant::now();
+        let wall_now = || Millis(started.elapsed().as_millis() as u64);
+        let mut now = Millis(0);
+        let mut next_tick = Millis(0);
+        let mut next_heartbeat = Millis(0);
+        while !self.stop.load(Ordering::Relaxed) {
+            let wait = match self.clock {
+                ClockMode::Wall { .. } => Duration::from_millis(
+                    next_tick
+                        .since(wall_now())
+                        .min(READ_TIMEOUT.as_millis() as u64),
+                ),
+                ClockMode::Simulator => READ_TIMEOUT,
+            };
+            let event = match self.events.recv_timeout(wait) {
+                Ok(event) => Some(event),
+                Err(RecvTimeoutError::Timeout) => None,
+                // The readers also end when asked to stop; only otherwise is it a failure.
+                Err(RecvTimeoutError::Disconnected) if self.stop.load(Ordering::Relaxed) => break,
+                Err(RecvTimeoutError::Disconnected) => return Err(IoError::LinksClosed),
+            };
+            if let ClockMode::Wall { rate_hz } = self.clock {
+                now = wall_now();
+                if let Some(event) = event {
+                    self.handle(now, event);
+                }
+                if now >= next_tick {
+                    self.tick(now);
+                    let period = (1000.0 / rate_hz).max(1.0) as u64;
+                    // Keep the cadence; after a stall, start afresh rather than burst.
+                    next_tick = Millis(next_tick.0 + period);
+                    if next_tick <= now {
+                        next_tick = Millis(now.0 + period);
+                    }
+                }
+            } else if let Some(event) = event {
+                // Lockstep: time moves only with the autopilot's clock.
+                let position_time = match &event {
+                    Event::Autopilot(header, message) if self.is_our_autopilot(header) => {
+                        match message.as_ref() {
+                            MavMessage::LOCAL_POSITION_NED(p) => {
+                                Some(self.boot_clock.update(p.time_boot_ms))
+                            }
+                            _ => None,
+                        }
+                    }
+                    _ => None,
+                };
+                if let Some(t) = position_time {
+                    now = now.max(t);
+                }
+                self.handle(now, event);
+                if position_time.is_some() {
+                    self.tick(now);
+                }
+            }
+            if now >= next_heartbeat {
+                self.send_heartbeats();
+                next_heartbeat = Millis(now.0 + HEARTBEAT_PERIOD_MS);
+            }
+        }
+        info!(
+            "stopping; counters: {:?}; core: {:?}",
+            self.counters(),
+            self.core.counters()
+        );
+        Ok(())
+    }
+
+    fn is_our_autopilot(&self, header: &MavHeader) -> bool {
+        header.system_id == u32::from(self.core.config().system_id)
+    }
+
+    fn handle(&mut self, now: Millis, event: Event) {
+        match event {
+            Event::Autopilot(header, message) => self.handle_autopilot(now, header, *message),
+            Event::AutopilotMalformed => self.counters.autopilot.malformed += 1,
+            Event::GroundMalformed => self.gate.counters.malformed += 1,
+            Event::Ground(raw) => self.handle_ground(now, &raw),
+        }
+    }
+
+    fn handle_autopilot(&mut self, now: Millis, header: MavHeader, message: MavMessage) {
+        if !self.is_our_autopilot(&header) {
+            self.counters.autopilot.other_systems += 1;
+            return;
+        }
+        match message {
+            MavMessage::HEARTBEAT(hb) => {
+                // Our own kind (another companion computer, a GCS) on the same system id is
+                // not the autopilot.
+                if matches!(
+                    hb.mavtype,
+                    MavType::MAV_TYPE_GCS | MavType::MAV_TYPE_ONBOARD_CONTROLLER
+                ) {
+                    return;
+                }
+                self.counters.autopilot.received += 1;
+                self.core
+                    .on_heartbeat(now, hb.base_mode.bits(), hb.custom_mode);
+            }
+            MavMessage::LOCAL_POSITION_NED(p) => {
+                self.counters.autopilot.received += 1;
+                self.core.on_local_position(now, [p.x, p.y, p.z]);
+            }
+            MavMessage::COMMAND_ACK(ack) => {
+                self.counters.autopilot.received += 1;
+                match ack.result {
+                    MavResult::MAV_RESULT_ACCEPTED | MavResult::MAV_RESULT_IN_PROGRESS => {
+                        info!("autopilot accepted {:?}", ack.command);
+                    }
+                    result => {
+                        self.counters.autopilot.commands_refused += 1;
+                        warn!("autopilot refused {:?}: {result:?}", ack.command);
+                    }
+                }
+            }
+            _ => {}
+        }
+    }
+
+    fn handle_ground(&mut self, now: Millis, raw: &MAVLinkMessageRaw) {
+        let (header, message) = match self.gate.accept(raw) {
+            Ok(accepted) => accepted,
+            Err(why) => {
+                debug!(
+                    "uplink frame from system {} dropped: {why:?}",
+                    raw.system_id()
+                );
+                return;
+            }
+        };
+        let MavMessage::TUNNEL(tunnel) = message else {
+            return;
+        };
+        let system_id = self.core.config().system_id;
+        if tunnel.target_system != 0 && tunnel.target_system != system_id {
+            self.gate.counters.not_for_us += 1;
+            return;
+        }
+        if tunnel.payload_type != MavTunnelPayloadType::MAV_TUNNEL_PAYLOAD_TYPE_UNKNOWN {
+            self.gate.counters.malformed += 1;
+            return;
+        }
+        let len = usize::from(tunnel.payload_length).min(tunnel.payload.len());
+        if usize::from(tunnel.payload_length) > tunnel.payload.len() {
+            self.gate.counters.malformed += 1;
+            return;
+        }
+        self.gate.counters.tunnel_chunks += 1;
+        debug!(
+            "uplink chunk of {len} bytes from system {}",
+            header.system_id
+        );
+        if let Err(e) = self.core.on_tunnel_payload(now, &tunnel.payload[..len]) {
+            debug!("uplink chunk from system {} dropped: {e}", header.system_id);
+        }
+    }
+
+    fn tick(&mut self, now: Millis) {
+        let decision = self.core.tick(now);
+        if let Some(setpoint) = decision.setpoint {
+            self.send_setpoint(now, setpoint);
+        }
+        if let Some(command) = decision.command {
+            self.send_command(command);
+        }
+    }
+
+    fn header(&self) -> MavHeader {
+        MavHeader {
+            system_id: u32::from(self.core.config().system_id),
+            component_id: COMPONENT_ID,
+            sequence: 0,
+        }
+    }
+
+    fn send_autopilot(&mut self, message: &MavMessage) {
+        if let Err(e) = self.autopilot.send(&self.header(), message) {
+            debug!("autopilot send failed: {e}");
+        }
+    }
+
+    fn send_setpoint(&mut self, now: Millis, setpoint: Setpoint) {
+        let [vx, vy, vz] = setpoint.velocity_ned;
+        let message =
+            MavMessage::SET_POSITION_TARGET_LOCAL_NED(SET_POSITION_TARGET_LOCAL_NED_DATA {
+                time_boot_ms: now.0 as u32,
+                vx,
+                vy,
+                vz,
+                type_mask: PositionTargetTypemask::from_bits_retain(VELOCITY_ONLY_TYPE_MASK),
+                target_system: self.core.config().system_id,
+                target_component: AUTOPILOT_COMPONENT_ID,
+                coordinate_frame: MavFrame::MAV_FRAME_LOCAL_NED,
+                ..Default::default()
+            });
+        self.send_autopilot(&message);
+        self.counters.autopilot.setpoints_sent += 1;
+    }
+
+    fn send_command(&mut self, command: AutopilotCommand) {
+        let (command_id, param1, param2) = match command {
+            AutopilotCommand::Arm => (MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0),
+            AutopilotCommand::SetMode { custom_main_mode } => (
+                MavCmd::MAV_CMD_DO_SET_MODE,
+                // MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+                1.0,
+                f32::from(custom_main_mode),
+            ),
+        };
+        info!("sending {command_id:?} ({param1}, {param2})");
+        let message = MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
+            param1,
+            param2,
+            command: command_id,
+            target_system: self.core.config().system_id,
+            target_component: AUTOPILOT_COMPONENT_ID,
+            ..Default::default()
+        });
+        self.send_autopilot(&message);
+        self.counters.autopilot.commands_sent += 1;
+    }
+
+    fn send_heartbeats(&mut self) {
+        let message = MavMessage::HEARTBEAT(HEARTBEAT_DATA {
+            custom_mode: 0,
+            mavtype: MavType::MAV_TYPE_ONBOARD_CONTROLLER,
+            autopilot: MavAutopilot::MAV_AUTOPILOT_INVALID,
+            base_mode: MavModeFlag::empty(),
+            system_status: MavState::MAV_STATE_ACTIVE,
+            mavlink_version: 3,
+        });
+        self.send_autopilot(&message);
+        let sealed = self.gate.seal(self.header(), &message);
+        if let Err(e) = self.ground.send_raw(&sealed) {
+            debug!("ground send failed: {e}");
+        }
+        self.counters.heartbeats_sent += 1;
+    }
+}
+
+impl<P> Drop for Daemon<P> {
+    fn drop(&mut self) {
+        // Reader threads see the flag within one read timeout and exit.
+        self.stop.store(true, Ordering::Relaxed);
+    }
+}
