@@ -265,6 +265,19 @@ pub enum Status {
     Holding(HoldReason),
 }
 
+impl Status {
+    /// Whether two statuses say the same thing to an operator: a stale hold's age and the
+    /// safety trims while flying change every tick without being news.
+    pub fn same_kind(&self, other: &Status) -> bool {
+        same_kind(self, other)
+    }
+
+    /// Whether the core is holding.
+    pub fn is_hold(&self) -> bool {
+        matches!(self, Status::Holding(_))
+    }
+}
+
 impl fmt::Display for Status {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {

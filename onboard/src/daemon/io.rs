@@ -10,7 +10,8 @@
 //! * **ground** (`udpin:0.0.0.0:14600`, …): TUNNEL frames (payload type 0) carrying the uplink
 //!   chunks in. With a signing key every frame must carry a valid MAVLink 2 signature; unsigned
 //!   and wrongly signed frames are dropped and counted ([`UplinkGate`]). Our HEARTBEAT out,
-//!   signed with the same key.
+//!   signed with the same key, and a STATUSTEXT whenever the core's status changes (so the
+//!   ground sees holds and their reasons).
 //!
 //! Clocks ([`ClockMode`]): wall clock (ticks at `--rate-hz`), or lockstep with a simulator, where
 //! the daemon's time is the autopilot's `time_boot_ms` and every LOCAL_POSITION_NED triggers one
@@ -28,8 +29,8 @@ use std::time::{Duration, Instant};
 use log::{debug, info, warn};
 use mavlink::dialects::common::{
     COMMAND_LONG_DATA, HEARTBEAT_DATA, MavAutopilot, MavCmd, MavFrame, MavMessage, MavModeFlag,
-    MavResult, MavState, MavTunnelPayloadType, MavType, PositionTargetTypemask,
-    SET_POSITION_TARGET_LOCAL_NED_DATA,
+    MavResult, MavSeverity, MavState, MavTunnelPayloadType, MavType, PositionTargetTypemask,
+    SET_POSITION_TARGET_LOCAL_NED_DATA, STATUSTEXT_DATA,
 };
 use mavlink::error::MessageReadError;
 use mavlink::{
@@ -37,7 +38,7 @@ use mavlink::{
     SigningConfig, SigningData, UdpConfig, UdpMode,
 };
 
-use super::core::{AutopilotCommand, DaemonCore, Millis, Policy, Setpoint};
+use super::core::{AutopilotCommand, DaemonCore, Millis, Policy, Setpoint, Status};
 
 /// Our MAVLink component id: `MAV_COMP_ID_ONBOARD_COMPUTER`.
 pub const COMPONENT_ID: u8 = 191;
@@ -322,6 +323,8 @@ pub struct ShellCounters {
     pub autopilot: AutopilotCounters,
     /// Heartbeats sent (to both links).
     pub heartbeats_sent: u64,
+    /// STATUSTEXT messages sent to the ground (one per status change).
+    pub status_texts_sent: u64,
 }
 
 enum Event {
@@ -343,6 +346,7 @@ pub struct Daemon<P> {
     clock: ClockMode,
     boot_clock: BootClock,
     counters: ShellCounters,
+    ground_sequence: u8,
     stop: Arc<AtomicBool>,
 }
 
@@ -482,6 +486,7 @@ impl<P: Policy> Daemon<P> {
             clock: options.clock,
             boot_clock: BootClock::default(),
             counters: ShellCounters::default(),
+            ground_sequence: 0,
             stop,
         })
     }
@@ -676,7 +681,11 @@ impl<P: Policy> Daemon<P> {
     }
 
     fn tick(&mut self, now: Millis) {
+        let previous = self.core.status();
         let decision = self.core.tick(now);
+        if !decision.status.same_kind(&previous) {
+            self.send_status_text(decision.status);
+        }
         if let Some(setpoint) = decision.setpoint {
             self.send_setpoint(now, setpoint);
         }
@@ -740,6 +749,32 @@ impl<P: Policy> Daemon<P> {
         self.counters.autopilot.commands_sent += 1;
     }
 
+    fn send_to_ground(&mut self, message: &MavMessage) {
+        let mut header = self.header();
+        header.sequence = self.ground_sequence;
+        self.ground_sequence = self.ground_sequence.wrapping_add(1);
+        let sealed = self.gate.seal(header, message);
+        if let Err(e) = self.ground.send_raw(&sealed) {
+            debug!("ground send failed: {e}");
+        }
+    }
+
+    fn send_status_text(&mut self, status: Status) {
+        let severity = if status.is_hold() {
+            MavSeverity::MAV_SEVERITY_WARNING
+        } else {
+            MavSeverity::MAV_SEVERITY_INFO
+        };
+        // STATUSTEXT holds 50 bytes; longer texts are cut.
+        let text = format!("skyherd: {status}");
+        let message = MavMessage::STATUSTEXT(STATUSTEXT_DATA {
+            severity,
+            text: text.as_str().into(),
+        });
+        self.send_to_ground(&message);
+        self.counters.status_texts_sent += 1;
+    }
+
     fn send_heartbeats(&mut self) {
         let message = MavMessage::HEARTBEAT(HEARTBEAT_DATA {
             custom_mode: 0,
@@ -750,10 +785,7 @@ impl<P: Policy> Daemon<P> {
             mavlink_version: 3,
         });
         self.send_autopilot(&message);
-        let sealed = self.gate.seal(self.header(), &message);
-        if let Err(e) = self.ground.send_raw(&sealed) {
-            debug!("ground send failed: {e}");
-        }
+        self.send_to_ground(&message);
         self.counters.heartbeats_sent += 1;
     }
 }

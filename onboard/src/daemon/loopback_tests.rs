@@ -14,7 +14,7 @@ use mavlink::dialects::common::{
 };
 use mavlink::{Connectable, MavConnection, MavHeader, SigningConfig, UdpConfig, UdpMode};
 
-use super::core::{CoreConfig, CoreCounters, DaemonCore, Flavour, Status};
+use super::core::{CoreConfig, CoreCounters, DaemonCore, Flavour, HoldReason, Status};
 use super::io::{
     COMPONENT_ID, ClockMode, Daemon, LinkOptions, ShellCounters, VELOCITY_ONLY_TYPE_MASK,
 };
@@ -295,14 +295,29 @@ fn daemon_flies_a_fake_px4_and_rejects_forged_uplink() {
     // The daemon signs its heartbeats to the ground: the right key reads them. (A udpin link
     // answers whoever wrote last, so the real ground writes last.)
     send_uplink(&ground, 255, message_id, &snapshot(sequence));
+    // Then the uplink goes quiet; the daemon holds and tells the ground with a STATUSTEXT.
     let mut ground_heard = false;
-    for _ in 0..100 {
-        if let Ok((header, MavMessage::HEARTBEAT(hb))) = ground.recv() {
-            ground_heard = header.system_id == u32::from(DRONE)
-                && hb.mavtype == MavType::MAV_TYPE_ONBOARD_CONTROLLER;
-            if ground_heard {
-                break;
+    let mut texts = Vec::new();
+    let listen = Instant::now();
+    while listen.elapsed() < Duration::from_millis(2500) {
+        match ground.recv() {
+            Ok((header, MavMessage::HEARTBEAT(hb))) => {
+                ground_heard |= header.system_id == u32::from(DRONE)
+                    && hb.mavtype == MavType::MAV_TYPE_ONBOARD_CONTROLLER;
             }
+            Ok((_, MavMessage::STATUSTEXT(st))) => {
+                texts.push(
+                    st.text
+                        .to_str()
+                        .unwrap_or("")
+                        .trim_end_matches('\0')
+                        .to_string(),
+                );
+            }
+            _ => {}
+        }
+        if ground_heard && texts.iter().any(|t| t.contains("uplink stale")) {
+            break;
         }
     }
     stop.store(true, Ordering::Relaxed);
@@ -319,7 +334,14 @@ fn daemon_flies_a_fake_px4_and_rejects_forged_uplink() {
         "the signed ground never read a daemon heartbeat"
     );
     assert!(
-        matches!(core.status, Status::Flying(_)),
+        texts
+            .iter()
+            .any(|t| t.starts_with("skyherd: holding: uplink stale")),
+        "{texts:?}"
+    );
+    // Held for the quiet uplink, not aborted by the forged commands.
+    assert!(
+        matches!(core.status, Status::Holding(HoldReason::UplinkStale { .. })),
         "ended {:?}; {counters:?}",
         core.status
     );
