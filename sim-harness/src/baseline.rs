@@ -1,0 +1,419 @@
+//! Rule-based herders behind the same per-herder [`Policy`] trait as the learned actor.
+//!
+//! All rules measure in goal radii `R`, so one rule serves the 45 m paper goal and the 0.9 m
+//! indoor goal: stand-off `8/45 R` (8 m in the paper world), herding altitude `2/45 R` (2 m).
+//! They read only the observation (positions; never the noisy boids parameters). Work shared by
+//! all herders (rankings, shares) is done once per step and cached: every herder would compute
+//! the same thing, so this is still decentralised behaviour, just cheaper to simulate.
+//!
+//! * [`Method::Strombom`]: Strömbom et al. (2014) for several herders: when some target is
+//!   farther than `f(N) = 0.22 R N^0.37` from the flock centroid (about 1.3 times the radius a
+//!   flock of N spreads to under separation alone), the herders take the farthest stragglers, one
+//!   each, and push them towards the centroid; the others drive: they spread on an arc of 120°
+//!   behind the flock (seen from the goal) at the flock radius plus the stand-off.
+//! * [`Method::ControlTutor`]: the control-tutor rule of CTRL (de Lellis et al.) as the paper
+//!   describes it: each herder, on its own, chases the target farthest from the goal and pushes
+//!   it in from behind. No coordination: they all pick the same target.
+//! * [`Method::Lama`]: after Lama & di Bernardo (2024): each herder takes the targets outside the
+//!   goal for which it is the nearest herder and pushes the one of them farthest from the goal
+//!   from behind; a herder with no share goes behind the flock.
+//! * [`Method::FarthestTargets`]: the best simple rule of DESIGN §2: the M targets farthest from
+//!   the goal are handed out, farthest first, each to the nearest herder not yet given one, and
+//!   each herder sits behind its target on the target-goal line.
+//!
+//! "Push from behind" means: fly to the point `stand-off` behind the target on the line from the
+//! goal through it; a herder on the goal side first swings round the target at 2 stand-offs, so
+//! that it does not drive the target the wrong way on its way there.
+
+use std::fmt;
+use std::str::FromStr;
+
+use crate::policy::{Policy, PolicyFactory};
+use crate::world::{World, dist2};
+
+/// Stand-off behind a pushed target, in goal radii (8 m at R = 45 m).
+pub const STANDOFF_R: f64 = 8.0 / 45.0;
+/// How far inside the walls a herder keeps, in goal radii (1 m at R = 45 m).
+pub const WALL_MARGIN_R: f64 = 1.0 / 45.0;
+/// Herding altitude, in goal radii (2 m at R = 45 m).
+pub const ALTITUDE_R: f64 = 2.0 / 45.0;
+
+/// The rule-based methods.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
+pub enum Method {
+    /// Strömbom-style collect/drive with herders on an arc.
+    Strombom,
+    /// CTRL-style control tutor: everyone chases the target farthest from the goal.
+    ControlTutor,
+    /// Lama & di Bernardo-style: own share, farthest from the goal.
+    Lama,
+    /// DESIGN §2's best simple rule: each herder a different far target.
+    FarthestTargets,
+}
+
+impl Method {
+    /// Every baseline, in report order.
+    pub const ALL: [Method; 4] = [
+        Method::Strombom,
+        Method::ControlTutor,
+        Method::Lama,
+        Method::FarthestTargets,
+    ];
+
+    /// The name used on the command line and in reports.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Method::Strombom => "strombom",
+            Method::ControlTutor => "ctrl",
+            Method::Lama => "lama",
+            Method::FarthestTargets => "farthest",
+        }
+    }
+}
+
+impl fmt::Display for Method {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+impl FromStr for Method {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        Method::ALL
+            .into_iter()
+            .find(|m| m.as_str() == s)
+            .ok_or_else(|| {
+                format!(
+                    "unknown method `{s}`; baselines are {}",
+                    Method::ALL.map(Method::as_str).join(", ")
+                )
+            })
+    }
+}
+
+impl PolicyFactory for Method {
+    fn name(&self) -> String {
+        self.as_str().to_owned()
+    }
+    fn make(&self) -> Box<dyn Policy + Send> {
+        Box::new(RulePolicy::new(*self))
+    }
+}
+
+/// A rule-based herder team; one instance answers for every herder.
+#[derive(Clone, Debug)]
+pub struct RulePolicy {
+    method: Method,
+    cached_step: Option<u64>,
+    /// Per herder: the ground point to reach this step.
+    goals: Vec<[f64; 2]>,
+    /// Per herder: the target it pushes (for the swing-round), if any.
+    pushed: Vec<Option<[f64; 2]>>,
+    order: Vec<u32>,
+    dist: Vec<f64>,
+    taken: Vec<bool>,
+    share_best: Vec<Option<(f64, usize)>>,
+    by_angle: Vec<(f64, usize)>,
+}
+
+impl RulePolicy {
+    /// A team following `method`.
+    pub fn new(method: Method) -> Self {
+        RulePolicy {
+            method,
+            cached_step: None,
+            goals: Vec::new(),
+            pushed: Vec::new(),
+            order: Vec::new(),
+            dist: Vec::new(),
+            taken: Vec::new(),
+            share_best: Vec::new(),
+            by_angle: Vec::new(),
+        }
+    }
+
+    /// The method it follows.
+    pub fn method(&self) -> Method {
+        self.method
+    }
+
+    fn plan(&mut self, w: &World) {
+        let m = w.herders.len();
+        self.goals.clear();
+        self.goals.resize(m, w.goal.center);
+        self.pushed.clear();
+        self.pushed.resize(m, None);
+        let g = w.goal.center;
+        let r = w.goal.radius;
+        let standoff = STANDOFF_R * r;
+        self.dist.clear();
+        self.dist
+            .extend(w.targets.iter().map(|&t| dist2(t, g).sqrt()));
+        // Targets still outside the goal; if none, keep everyone where they are.
+        self.order.clear();
+        self.order
+            .extend((0..w.targets.len() as u32).filter(|&j| self.dist[j as usize] > r));
+        if self.order.is_empty() {
+            for (goal, h) in self.goals.iter_mut().zip(&w.herders) {
+                *goal = [h[0], h[1]];
+            }
+            return;
+        }
+        match self.method {
+            Method::ControlTutor => {
+                let far = self.farthest_outside();
+                for i in 0..m {
+                    self.push(i, w.targets[far], g, standoff);
+                }
+            }
+            Method::FarthestTargets => {
+                let k = m.min(self.order.len());
+                let dist = &self.dist;
+                let by_far = |a: &u32, b: &u32| dist[*b as usize].total_cmp(&dist[*a as usize]);
+                if k < self.order.len() {
+                    self.order.select_nth_unstable_by(k - 1, by_far);
+                }
+                self.order[..k].sort_unstable_by(by_far);
+                self.taken.clear();
+                self.taken.resize(m, false);
+                for rank in 0..m {
+                    // More herders than targets outside: the spare ones double up, farthest first.
+                    let j = self.order[rank % k] as usize;
+                    let t = w.targets[j];
+                    let Some(i) = nearest_free(&w.herders, &self.taken, t) else {
+                        break;
+                    };
+                    self.taken[i] = true;
+                    self.push(i, t, g, standoff);
+                }
+            }
+            Method::Lama => {
+                self.share_best.clear();
+                self.share_best.resize(m, None);
+                for &j in &self.order {
+                    let j = j as usize;
+                    let t = w.targets[j];
+                    let i = nearest_herder(&w.herders, t, &[]);
+                    let d = self.dist[j];
+                    let best = &mut self.share_best[i];
+                    if best.is_none_or(|(bd, _)| d > bd) {
+                        *best = Some((d, j));
+                    }
+                }
+                let (centroid, radius) = centroid_radius(w);
+                let behind_flock = behind(centroid, g, radius + standoff);
+                for i in 0..m {
+                    match self.share_best[i] {
+                        Some((_, j)) => self.push(i, w.targets[j], g, standoff),
+                        None => self.goals[i] = behind_flock,
+                    }
+                }
+            }
+            Method::Strombom => {
+                let (centroid, radius) = centroid_radius(w);
+                let n = w.targets.len() as f64;
+                let f_n = 0.22 * r * n.powf(0.37);
+                // Stragglers: every target beyond f(N) from the centroid, farthest first.
+                self.dist.clear();
+                self.dist
+                    .extend(w.targets.iter().map(|&t| dist2(t, centroid).sqrt()));
+                self.order.clear();
+                self.order
+                    .extend((0..w.targets.len() as u32).filter(|&j| self.dist[j as usize] > f_n));
+                let k = m.min(self.order.len());
+                let dist = &self.dist;
+                let by_far = |a: &u32, b: &u32| dist[*b as usize].total_cmp(&dist[*a as usize]);
+                if k > 0 && k < self.order.len() {
+                    self.order.select_nth_unstable_by(k - 1, by_far);
+                }
+                self.order[..k].sort_unstable_by(by_far);
+                self.taken.clear();
+                self.taken.resize(m, false);
+                for rank in 0..k {
+                    let t = w.targets[self.order[rank] as usize];
+                    if let Some(i) = nearest_free(&w.herders, &self.taken, t) {
+                        self.taken[i] = true;
+                        // Collect: push the straggler towards the flock centroid.
+                        self.push(i, t, centroid, standoff);
+                    }
+                }
+                // Drive: the rest spread on an arc behind the flock, in the order of their
+                // bearing around it so that they do not cross.
+                let back = unit([centroid[0] - g[0], centroid[1] - g[1]]);
+                let base = back[1].atan2(back[0]);
+                let by_angle = &mut self.by_angle;
+                by_angle.clear();
+                by_angle.extend((0..m).filter(|&i| !self.taken[i]).map(|i| {
+                    let h = w.herders[i];
+                    let a = (h[1] - centroid[1]).atan2(h[0] - centroid[0]) - base;
+                    (wrap_angle(a), i)
+                }));
+                let d = by_angle.len();
+                if d > 0 {
+                    by_angle.sort_by(|a, b| a.0.total_cmp(&b.0));
+                    let arc = 120f64.to_radians();
+                    let ring = radius + standoff;
+                    for (slot, &(_, i)) in self.by_angle.iter().enumerate() {
+                        let frac = if d == 1 {
+                            0.0
+                        } else {
+                            slot as f64 / (d - 1) as f64 - 0.5
+                        };
+                        let a = base + frac * arc;
+                        self.goals[i] =
+                            [centroid[0] + ring * a.cos(), centroid[1] + ring * a.sin()];
+                    }
+                }
+            }
+        }
+    }
+
+    fn farthest_outside(&self) -> usize {
+        let mut best = self.order[0] as usize;
+        for &j in &self.order {
+            if self.dist[j as usize] > self.dist[best] {
+                best = j as usize;
+            }
+        }
+        best
+    }
+
+    /// Herder `i` pushes `target` away from `from` (the goal, or the centroid when collecting).
+    fn push(&mut self, i: usize, target: [f64; 2], from: [f64; 2], standoff: f64) {
+        self.goals[i] = behind_point(target, from, standoff);
+        self.pushed[i] = Some(target);
+    }
+}
+
+fn nearest_herder(herders: &[[f64; 3]], t: [f64; 2], taken: &[bool]) -> usize {
+    let mut best = 0;
+    let mut best_d = f64::INFINITY;
+    for (i, h) in herders.iter().enumerate() {
+        if taken.get(i).copied().unwrap_or(false) {
+            continue;
+        }
+        let d = dist2([h[0], h[1]], t);
+        if d < best_d {
+            best_d = d;
+            best = i;
+        }
+    }
+    best
+}
+
+fn nearest_free(herders: &[[f64; 3]], taken: &[bool], t: [f64; 2]) -> Option<usize> {
+    if taken.iter().all(|&x| x) {
+        return None;
+    }
+    Some(nearest_herder(herders, t, taken))
+}
+
+fn centroid_radius(w: &World) -> ([f64; 2], f64) {
+    let c = w.flock_centroid();
+    let r = w
+        .targets
+        .iter()
+        .map(|&t| dist2(t, c))
+        .fold(0.0, f64::max)
+        .sqrt();
+    (c, r)
+}
+
+fn unit(v: [f64; 2]) -> [f64; 2] {
+    let n = (v[0] * v[0] + v[1] * v[1]).sqrt();
+    if n > 1e-12 {
+        [v[0] / n, v[1] / n]
+    } else {
+        [1.0, 0.0]
+    }
+}
+
+fn wrap_angle(a: f64) -> f64 {
+    let tau = std::f64::consts::TAU;
+    let mut a = a % tau;
+    if a > std::f64::consts::PI {
+        a -= tau;
+    } else if a < -std::f64::consts::PI {
+        a += tau;
+    }
+    a
+}
+
+/// The point `standoff` beyond `target` on the ray from `from` through it.
+pub fn behind_point(target: [f64; 2], from: [f64; 2], standoff: f64) -> [f64; 2] {
+    behind(target, from, standoff)
+}
+
+fn behind(p: [f64; 2], from: [f64; 2], dist: f64) -> [f64; 2] {
+    let u = unit([p[0] - from[0], p[1] - from[1]]);
+    [p[0] + u[0] * dist, p[1] + u[1] * dist]
+}
+
+/// Velocity that reaches `point` at `altitude` this step if it can, else flies at `vmax`.
+pub fn steer(herder: [f64; 3], point: [f64; 2], altitude: f64, vmax: f64, dt: f64) -> [f64; 3] {
+    let v = [
+        (point[0] - herder[0]) / dt,
+        (point[1] - herder[1]) / dt,
+        (altitude - herder[2]) / dt,
+    ];
+    crate::world::cap3(v, vmax)
+}
+
+/// Where a herder at `h` should head to get behind `target` (pushed away from the point `from`,
+/// aiming at `behind_pt`) without driving it the wrong way: if it is on the near side, swing round.
+fn approach(h: [f64; 2], target: [f64; 2], behind_pt: [f64; 2], standoff: f64) -> [f64; 2] {
+    let back = unit([behind_pt[0] - target[0], behind_pt[1] - target[1]]);
+    let rel = [h[0] - target[0], h[1] - target[1]];
+    let dist = (rel[0] * rel[0] + rel[1] * rel[1]).sqrt();
+    let along = rel[0] * back[0] + rel[1] * back[1];
+    let swing = 2.0 * standoff;
+    if dist < 3.0 * standoff && along < 0.5 * dist {
+        // Go to the side of the target the herder is already on, a little behind.
+        let side = [-back[1], back[0]];
+        let s = if rel[0] * side[0] + rel[1] * side[1] >= 0.0 {
+            1.0
+        } else {
+            -1.0
+        };
+        let p = [
+            target[0] + swing * (s * side[0] + 0.5 * back[0]),
+            target[1] + swing * (s * side[1] + 0.5 * back[1]),
+        ];
+        return p;
+    }
+    behind_pt
+}
+
+impl Policy for RulePolicy {
+    fn reset(&mut self, _world: &World, _seed: u64) {
+        self.cached_step = None;
+    }
+
+    fn act(&mut self, world: &World, herder: usize) -> [f64; 3] {
+        if self.cached_step != Some(world.step) || self.goals.len() != world.herders.len() {
+            self.plan(world);
+            self.cached_step = Some(world.step);
+        }
+        let Some(&h) = world.herders.get(herder) else {
+            return [0.0; 3];
+        };
+        let r = world.goal.radius;
+        let mut point = self.goals[herder];
+        if let Some(target) = self.pushed[herder] {
+            point = approach([h[0], h[1]], target, point, STANDOFF_R * r);
+        }
+        // Never chase a point outside the arena: leaving it ends the episode.
+        let margin = WALL_MARGIN_R * r;
+        point[0] = point[0].clamp(
+            margin.min(world.area.width / 2.0),
+            (world.area.width - margin).max(world.area.width / 2.0),
+        );
+        point[1] = point[1].clamp(
+            margin.min(world.area.depth / 2.0),
+            (world.area.depth - margin).max(world.area.depth / 2.0),
+        );
+        let altitude = (ALTITUDE_R * r).min(world.area.ceiling);
+        steer(h, point, altitude, world.limits.herder, world.dt)
+    }
+}
