@@ -276,17 +276,19 @@ impl BootClock {
     /// ```
     /// use skyherd_onboard::daemon::{core::Millis, io::BootClock};
     /// let mut clock = BootClock::default();
-    /// assert_eq!(clock.update(500), Millis(500));
-    /// assert_eq!(clock.update(900), Millis(900));
+    /// assert_eq!(clock.update(5000), Millis(5000));
+    /// assert_eq!(clock.update(9000), Millis(9000));
+    /// // A datagram overtaken on the way: time does not go back.
+    /// assert_eq!(clock.update(8950), Millis(9000));
     /// // The autopilot rebooted: time goes on from where it was.
-    /// assert_eq!(clock.update(100), Millis(1000));
+    /// assert_eq!(clock.update(100), Millis(9100));
     /// ```
     pub fn update(&mut self, time_boot_ms: u32) -> Millis {
         if let Some(last) = self.last_raw
             && time_boot_ms < last
         {
-            // A small step back is reordering (UDP); a big one is a reboot.
-            if last - time_boot_ms < 1000 {
+            // A small step back is reordering on the link; a big one is a reboot.
+            if last - time_boot_ms <= 1000 {
                 return Millis(self.offset_ms + u64::from(last));
             }
             info!("autopilot clock restarted ({last} ms -> {time_boot_ms} ms)");
@@ -794,5 +796,91 @@ impl<P> Drop for Daemon<P> {
     fn drop(&mut self) {
         // Reader threads see the flag within one read timeout and exit.
         self.stop.store(true, Ordering::Relaxed);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use mavlink::dialects::common::TUNNEL_DATA;
+
+    const KEY: [u8; KEY_LEN] = [9; KEY_LEN];
+
+    fn tunnel() -> MavMessage {
+        MavMessage::TUNNEL(TUNNEL_DATA {
+            payload_type: MavTunnelPayloadType::MAV_TUNNEL_PAYLOAD_TYPE_UNKNOWN,
+            target_system: 1,
+            target_component: COMPONENT_ID,
+            payload_length: 3,
+            payload: [7; 128],
+        })
+    }
+
+    fn header() -> MavHeader {
+        MavHeader {
+            system_id: 255,
+            component_id: 190,
+            sequence: 0,
+        }
+    }
+
+    /// What a ground station with `key` puts on the wire.
+    fn signed_by(key: [u8; KEY_LEN]) -> MAVLinkMessageRaw {
+        UplinkGate::new(Some(key)).seal(header(), &tunnel())
+    }
+
+    #[test]
+    fn the_gate_takes_only_frames_signed_with_its_key() {
+        let mut gate = UplinkGate::new(Some(KEY));
+        let (h, m) = gate.accept(&signed_by(KEY)).unwrap();
+        assert_eq!((h.system_id, m), (255, tunnel()));
+        assert_eq!(
+            gate.accept(&signed_by([8; KEY_LEN])).err(),
+            Some(UplinkRejection::BadSignature)
+        );
+        assert_eq!(
+            gate.accept(&UplinkGate::new(None).seal(header(), &tunnel()))
+                .err(),
+            Some(UplinkRejection::Unsigned)
+        );
+        let c = gate.counters();
+        assert_eq!((c.accepted, c.bad_signature, c.unsigned), (1, 1, 1));
+    }
+
+    #[test]
+    fn a_replayed_frame_is_refused() {
+        let mut gate = UplinkGate::new(Some(KEY));
+        let frame = signed_by(KEY);
+        assert!(gate.accept(&frame).is_ok());
+        assert_eq!(
+            gate.accept(&frame).err(),
+            Some(UplinkRejection::BadSignature)
+        );
+    }
+
+    #[test]
+    fn an_unknown_tunnel_payload_type_is_malformed_not_a_panic() {
+        let mut gate = UplinkGate::new(None);
+        let MAVLinkMessageRaw::V2(mut raw) = gate.seal(header(), &tunnel()) else {
+            unreachable!()
+        };
+        // payload_type is the payload's first field (u16): 7 is no MAV_TUNNEL_PAYLOAD_TYPE.
+        const V2_HEADER_LEN: usize = 10;
+        raw.as_mut_slice()[V2_HEADER_LEN] = 7;
+        assert_eq!(
+            gate.accept(&MAVLinkMessageRaw::V2(raw)).err(),
+            Some(UplinkRejection::Malformed)
+        );
+        assert_eq!(gate.counters().malformed, 1);
+    }
+
+    #[test]
+    fn keys_parse_from_raw_or_hex_and_anything_else_is_an_error() {
+        assert_eq!(parse_key(&KEY).unwrap(), KEY);
+        let hex = format!("{}\n", "09".repeat(32));
+        assert_eq!(parse_key(hex.as_bytes()).unwrap(), KEY);
+        for bad in [&b""[..], &[0u8; 31], &[0u8; 33], "zz".repeat(32).as_bytes()] {
+            assert!(matches!(parse_key(bad), Err(IoError::BadKey(_))));
+        }
     }
 }
