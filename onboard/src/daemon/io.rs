@@ -612,12 +612,9 @@ impl<P: Policy> Daemon<P> {
         }
         match message {
             MavMessage::HEARTBEAT(hb) => {
-                // Our own kind (another companion computer, a GCS) on the same system id is
-                // not the autopilot.
-                if matches!(
-                    hb.mavtype,
-                    MavType::MAV_TYPE_GCS | MavType::MAV_TYPE_ONBOARD_CONTROLLER
-                ) {
+                // Other components of the same vehicle (camera, gimbal, this computer) send
+                // heartbeats too, with autopilot INVALID; only the autopilot's carry its mode.
+                if hb.autopilot == MavAutopilot::MAV_AUTOPILOT_INVALID {
                     return;
                 }
                 self.counters.autopilot.received += 1;
