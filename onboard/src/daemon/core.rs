@@ -320,6 +320,8 @@ pub struct CoreCounters {
     pub chunks: u64,
     /// Chunks refused (bad header, stale message id) and messages dropped (CRC, decode).
     pub bad_chunks: u64,
+    /// Times the ground's message ids went back after a silence (a ground restart).
+    pub ground_restarts: u64,
     /// Autopilot commands issued.
     pub commands_sent: u64,
 }
@@ -364,6 +366,7 @@ pub struct DaemonCore<P> {
     world: Option<(WorldSnapshot, Millis)>,
     last_command: Option<u32>,
     reassembler: Box<Reassembler>,
+    last_message_at: Option<Millis>,
     mission: Mission,
     last_status: Status,
     counters: CoreCounters,
@@ -382,6 +385,7 @@ impl<P: Policy> DaemonCore<P> {
             world: None,
             last_command: None,
             reassembler: Box::new(Reassembler::new()),
+            last_message_at: None,
             mission: Mission::Idle,
             last_status: Status::Idle,
             counters: CoreCounters::default(),
@@ -444,13 +448,23 @@ impl<P: Policy> DaemonCore<P> {
     /// counted, logged and dropped; the error says why.
     pub fn on_tunnel_payload(&mut self, now: Millis, chunk: &[u8]) -> Result<(), WireError> {
         self.counters.chunks += 1;
-        let decoded = match self.reassembler.push(chunk) {
-            Ok(None) => return Ok(()),
-            Ok(Some(message)) => decode_uplink(message),
-            Err(e) => Err(e),
-        };
-        match decoded {
-            Ok(message) => {
+        let mut pushed = push_and_decode(&mut self.reassembler, chunk);
+        if let Err(WireError::Stale { message_id }) = pushed
+            && self.uplink_silent(now)
+        {
+            // Only old ids for longer than the uplink timeout: the ground restarted and counts
+            // from scratch. Start over with it rather than stay deaf.
+            warn!("uplink: message ids restarted at {message_id}; assuming a ground restart");
+            self.counters.ground_restarts += 1;
+            self.reassembler.reset();
+            self.last_command = None;
+            self.world = None;
+            pushed = push_and_decode(&mut self.reassembler, chunk);
+        }
+        match pushed {
+            Ok(None) => Ok(()),
+            Ok(Some(message)) => {
+                self.last_message_at = Some(now);
                 self.on_uplink(now, message);
                 Ok(())
             }
@@ -460,6 +474,12 @@ impl<P: Policy> DaemonCore<P> {
                 Err(e)
             }
         }
+    }
+
+    /// No whole uplink message for longer than the uplink timeout.
+    fn uplink_silent(&self, now: Millis) -> bool {
+        self.last_message_at
+            .is_none_or(|t| now.since(t) > self.config.uplink_timeout_ms)
     }
 
     /// A decoded uplink message from the ground.
@@ -687,6 +707,17 @@ impl<P: Policy> DaemonCore<P> {
             None => Status::Flying(checked.reasons),
         };
         (setpoint, status)
+    }
+}
+
+/// One chunk into the reassembler; the message it completes, decoded.
+fn push_and_decode(
+    reassembler: &mut Reassembler,
+    chunk: &[u8],
+) -> Result<Option<Uplink>, WireError> {
+    match reassembler.push(chunk)? {
+        Some(message) => decode_uplink(message).map(Some),
+        None => Ok(None),
     }
 }
 
@@ -1089,6 +1120,37 @@ mod tests {
         assert!(c.on_tunnel_payload(Millis(0), &[]).is_err());
         let n = c.counters();
         assert_eq!((n.chunks, n.bad_chunks), (sent.len() as u64 + 2, 2));
+    }
+
+    #[test]
+    fn a_restarted_ground_is_heard_again_after_a_silence() {
+        use crate::wire::{MAX_MESSAGE, chunks, encode_uplink};
+        let mut buffer = [0u8; MAX_MESSAGE];
+        let mut send = |c: &mut DaemonCore<TowardsGoal>, t: u64, id: u16, message: &Uplink| {
+            let bytes = encode_uplink(message, &mut buffer).unwrap();
+            let mut last = Ok(());
+            for chunk in chunks(id, bytes).unwrap() {
+                last = c.on_tunnel_payload(Millis(t), chunk.as_bytes());
+            }
+            last
+        };
+        let mut c = core(Flavour::Px4);
+        autopilot(&mut c, 0, true, PX4_OFFBOARD);
+        send(&mut c, 0, 500, &start()).unwrap();
+        send(&mut c, 0, 501, &snapshot(900)).unwrap();
+        assert_eq!(c.tick(Millis(0)).status, Status::Flying(Reasons::NONE));
+        // The ground restarts: ids and sequence numbers from 1 again. Within the timeout an old
+        // id is just a late chunk...
+        assert!(matches!(
+            send(&mut c, 500, 1, &snapshot(1)),
+            Err(WireError::Stale { .. })
+        ));
+        // ...after it, a restart.
+        send(&mut c, 1500, 2, &command(1, MissionAction::Start)).unwrap();
+        send(&mut c, 1500, 3, &snapshot(1)).unwrap();
+        autopilot(&mut c, 1500, true, PX4_OFFBOARD);
+        assert_eq!(c.tick(Millis(1500)).status, Status::Flying(Reasons::NONE));
+        assert_eq!(c.counters().ground_restarts, 1);
     }
 
     #[test]
