@@ -1154,6 +1154,34 @@ mod tests {
     }
 
     #[test]
+    fn random_tunnel_payloads_are_counted_never_a_panic() {
+        let (mut c, _) = flying();
+        let mut seed = 0x9E37_79B9_7F4A_7C15_u64;
+        let mut next = move || {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            seed
+        };
+        let mut payload = [0u8; 128];
+        for i in 0..20_000 {
+            let len = (next() % 129) as usize;
+            for b in payload.iter_mut() {
+                *b = next() as u8;
+            }
+            // Half of them look like chunks, to get past the magic and version checks.
+            if i % 2 == 0 && len >= 2 {
+                payload[0] = crate::wire::CHUNK_MAGIC;
+                payload[1] = crate::wire::WIRE_VERSION;
+            }
+            let _ = c.on_tunnel_payload(Millis(10), &payload[..len]);
+        }
+        assert_eq!(c.counters().bad_chunks + c.counters().snapshots, 20_000 + 1);
+        autopilot(&mut c, 20, true, PX4_OFFBOARD);
+        assert_eq!(c.tick(Millis(20)).status, Status::Flying(Reasons::NONE));
+    }
+
+    #[test]
     fn counters_count() {
         let (mut c, _) = flying();
         c.tick(Millis(1600));

@@ -872,6 +872,37 @@ mod tests {
     }
 
     #[test]
+    fn random_frames_are_dropped_and_counted_never_a_panic() {
+        let mut seed = 0x2545_F491_4F6C_DD1D_u64;
+        let mut next = move || {
+            seed ^= seed << 13;
+            seed ^= seed >> 7;
+            seed ^= seed << 17;
+            seed
+        };
+        for key in [None, Some(KEY)] {
+            let mut gate = UplinkGate::new(key);
+            for _ in 0..20_000 {
+                let mut bytes = [0u8; mavlink::consts::MAX_FRAME_SIZE];
+                for b in bytes.iter_mut() {
+                    *b = next() as u8;
+                }
+                bytes[0] = mavlink::MAV_STX_V2;
+                let raw = MAVLinkMessageRaw::V2(MAVLinkV2MessageRaw::from_bytes_unparsed(bytes));
+                let _ = gate.accept(&raw);
+            }
+            let c = gate.counters();
+            assert_eq!(
+                c.accepted + c.unsigned + c.bad_signature + c.malformed,
+                20_000
+            );
+            if key.is_some() {
+                assert_eq!(c.accepted, 0, "{c:?}");
+            }
+        }
+    }
+
+    #[test]
     fn keys_parse_from_raw_or_hex_and_anything_else_is_an_error() {
         assert_eq!(parse_key(&KEY).unwrap(), KEY);
         let hex = format!("{}\n", "09".repeat(32));
