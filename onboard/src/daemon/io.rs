@@ -49,6 +49,8 @@ pub const AUTOPILOT_COMPONENT_ID: u8 = 1;
 pub const VELOCITY_ONLY_TYPE_MASK: u16 = 0x0DC7;
 /// HEARTBEAT period, ms of the daemon's clock.
 pub const HEARTBEAT_PERIOD_MS: u64 = 1000;
+/// Slowest control rate accepted, Hz: PX4 leaves OFFBOARD when setpoints come slower than 2 Hz.
+pub const MIN_RATE_HZ: f32 = 2.0;
 /// Length of a MAVLink 2 signing key.
 pub const KEY_LEN: usize = 32;
 
@@ -94,7 +96,7 @@ pub enum IoError {
     },
     /// The key file is not a 32-byte key.
     BadKey(String),
-    /// The control rate is not a positive, finite number of Hz.
+    /// The control rate is below [`MIN_RATE_HZ`] (or not a number).
     BadRate(f32),
     /// Both reader threads stopped.
     LinksClosed,
@@ -110,7 +112,7 @@ impl fmt::Display for IoError {
             } => write!(f, "cannot open the {link} link {address:?}: {source}"),
             IoError::BadKey(why) => write!(f, "bad signing key: {why}"),
             IoError::BadRate(hz) => {
-                write!(f, "control rate must be a positive number of Hz, got {hz}")
+                write!(f, "control rate must be at least {MIN_RATE_HZ} Hz, got {hz}")
             }
             IoError::LinksClosed => f.write_str("both MAVLink links closed"),
         }
@@ -448,10 +450,14 @@ fn spawn_reader(
 impl<P: Policy> Daemon<P> {
     /// Opens both links and starts their reader threads.
     pub fn connect(options: &LinkOptions, core: DaemonCore<P>) -> Result<Self, IoError> {
-        if let ClockMode::Wall { rate_hz } = options.clock
-            && !(rate_hz.is_finite() && rate_hz > 0.0)
-        {
-            return Err(IoError::BadRate(rate_hz));
+        if let ClockMode::Wall { rate_hz } = options.clock {
+            // PX4 drops out of OFFBOARD below 2 Hz of setpoints.
+            if !(rate_hz.is_finite() && rate_hz >= MIN_RATE_HZ) {
+                return Err(IoError::BadRate(rate_hz));
+            }
+            if rate_hz < 10.0 {
+                warn!("control rate {rate_hz} Hz is below the 10 Hz the actor was designed for");
+            }
         }
         let (autopilot, autopilot_local) = open_link("autopilot", &options.autopilot)?;
         let (ground, ground_local) = open_link("ground", &options.ground)?;
