@@ -5,7 +5,11 @@
 //! * **Input**: affine int8 per feature, scale and zero point from the feature's min and max over
 //!   the calibration observations (range widened to include 0); the per-feature scale is folded
 //!   into the first layer's weights before they are quantized.
-//! * **Activations**: affine int8 per tensor, from the min and max over the calibration set. The
+//! * **Ranges**: each tensor's (and each input feature's) range is its min and max over the
+//!   calibration set, widened to include 0, then shrunk towards 0 by the factor in
+//!   `CLIP_FACTORS` that gives the least squared quantization error over the calibration
+//!   values (for the output layer, measured after `tanh`).
+//! * **Activations**: affine int8 per tensor over that range. The
 //!   task input layers share one output quantization (the shared layers must read both tasks'
 //!   hidden vectors with one scale); ReLU layers have their minimum at 0, so their zero point is
 //!   -128. Task output layers are quantized per task before `tanh`, their range clipped to
@@ -222,6 +226,66 @@ impl Range {
     }
 }
 
+/// Calibration values of one tensor (or one input feature), capped at [`MAX_SAMPLES`].
+#[derive(Clone, Debug)]
+struct Samples {
+    range: Range,
+    values: Vec<f32>,
+}
+
+/// Most values kept per tensor for the range search.
+const MAX_SAMPLES: usize = 1 << 16;
+
+/// Clipping factors tried by [`Samples::fit`]: the range is shrunk towards 0 by each.
+const CLIP_FACTORS: [f32; 10] = [1.0, 0.95, 0.9, 0.85, 0.8, 0.75, 0.7, 0.65, 0.6, 0.5];
+
+impl Samples {
+    fn new() -> Samples {
+        Samples {
+            range: Range::EMPTY,
+            values: Vec::new(),
+        }
+    }
+    fn add_all(&mut self, vs: &[f32]) {
+        self.range.add_all(vs);
+        let room = MAX_SAMPLES.saturating_sub(self.values.len());
+        self.values.extend(vs.iter().take(room));
+    }
+    /// Affine int8 parameters for the clipped range with the least squared error over the
+    /// samples, the error measured after `transform` (identity, or `tanh` for the output).
+    fn fit(&self, limit: f32, transform: fn(f32) -> f32) -> (f32, i8) {
+        let full = Range {
+            min: self.range.min.max(-limit),
+            max: self.range.max.min(limit),
+        };
+        let mut best = (f64::INFINITY, full.affine());
+        for factor in CLIP_FACTORS {
+            let (scale, zp) = Range {
+                min: full.min * factor,
+                max: full.max * factor,
+            }
+            .affine();
+            let error: f64 = self
+                .values
+                .iter()
+                .map(|&v| {
+                    let q = ((v / scale).round() + zp as f32).clamp(-128.0, 127.0);
+                    let back = scale * (q - zp as f32);
+                    ((transform(back) - transform(v)) as f64).powi(2)
+                })
+                .sum();
+            if error < best.0 {
+                best = (error, (scale, zp));
+            }
+        }
+        best.1
+    }
+}
+
+fn identity(x: f32) -> f32 {
+    x
+}
+
 /// `multiplier * 2^-shift ~= m`, `multiplier` in `[2^30, 2^31)` (or 0 for a vanishing `m`).
 pub fn quantize_multiplier(m: f64) -> Result<(i32, u8), QuantizeError> {
     if !m.is_finite() || m < 0.0 {
@@ -317,11 +381,11 @@ pub fn quantize_model<'o>(
         return Err(QuantizeError::NonFinite);
     }
 
-    // One pass over the calibration set collects every range.
-    let mut input = vec![Range::EMPTY; shape.features];
-    let mut hidden_in = Range::EMPTY;
-    let mut shared = vec![Range::EMPTY; shape.shared_layers];
-    let mut outputs = [Range::EMPTY; Task::COUNT];
+    // One pass over the calibration set collects every tensor's values.
+    let mut input = vec![Samples::new(); shape.features];
+    let mut hidden_in = Samples::new();
+    let mut shared = vec![Samples::new(); shape.shared_layers];
+    let mut outputs = vec![Samples::new(); Task::COUNT];
     let mut count = 0usize;
     for (task, features) in calibration {
         if features.len() != shape.features {
@@ -333,7 +397,10 @@ pub fn quantize_model<'o>(
         if features.iter().any(|v| !v.is_finite()) {
             return Err(QuantizeError::NonFinite);
         }
-        input.iter_mut().zip(features).for_each(|(r, &v)| r.add(v));
+        input
+            .iter_mut()
+            .zip(features)
+            .for_each(|(r, v)| r.add_all(core::slice::from_ref(v)));
         let trace = actor.trace(task, features);
         hidden_in.add_all(&trace.input_layer);
         shared
@@ -348,9 +415,12 @@ pub fn quantize_model<'o>(
     }
 
     let (input_scales, input_zero_points): (Vec<f32>, Vec<i8>) =
-        input.iter().map(|r| r.affine()).unzip();
-    let hidden_in = hidden_in.affine();
-    let shared: Vec<(f32, i8)> = shared.iter().map(|r| r.affine()).collect();
+        input.iter().map(|r| r.fit(f32::INFINITY, identity)).unzip();
+    let hidden_in = hidden_in.fit(f32::INFINITY, identity);
+    let shared: Vec<(f32, i8)> = shared
+        .iter()
+        .map(|r| r.fit(f32::INFINITY, identity))
+        .collect();
     let last_hidden = shared.last().copied().unwrap_or(hidden_in);
 
     let mut layers = Vec::with_capacity(2 * Task::COUNT + shape.shared_layers);
@@ -385,17 +455,15 @@ pub fn quantize_model<'o>(
         )?);
         previous = out;
     }
-    for (dense, range) in actor.task_outputs.iter().zip(outputs) {
-        let clipped = if range.min <= range.max {
-            Range {
-                min: range.min.max(-OUTPUT_CLIP),
-                max: range.max.min(OUTPUT_CLIP),
-            }
-        } else {
+    for (dense, samples) in actor.task_outputs.iter().zip(&outputs) {
+        let output_quantization = if samples.values.is_empty() {
             Range {
                 min: -OUTPUT_CLIP,
                 max: OUTPUT_CLIP,
             }
+            .affine()
+        } else {
+            samples.fit(OUTPUT_CLIP, f32::tanh)
         };
         let zero_points = vec![last_hidden.1; dense.inputs];
         layers.push(quantize_layer(
@@ -404,7 +472,7 @@ pub fn quantize_model<'o>(
             &dense.bias,
             last_hidden.0,
             &zero_points,
-            clipped.affine(),
+            output_quantization,
             false,
         )?);
     }

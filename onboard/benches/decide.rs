@@ -1,0 +1,143 @@
+//! One drone decision on the host: `obs::encode` + `Actor::infer` for N = 16, 256, 1024 targets,
+//! with M = 4 herders and with the adaptive M = 2^floor(log2(N) / 2). Checks zero heap use with
+//! a counting allocator. Model: seeded, untrained, F = 46, H = 64, S = 2 (what trained models
+//! are expected to look like; the timing does not depend on the weights).
+#![allow(missing_docs)]
+// The counting allocator that proves "zero heap" must implement `GlobalAlloc`, an unsafe trait;
+// it only forwards to `System`.
+#![allow(unsafe_code)]
+
+use std::alloc::{GlobalAlloc, Layout, System};
+use std::hint::black_box;
+use std::sync::atomic::{AtomicUsize, Ordering};
+
+use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
+use skyherd_model::{ActorShape, FloatActor, ModelMeta, SplitMix64, Task, quantize};
+use skyherd_onboard::actor::Actor;
+use skyherd_onboard::obs::{ENCODER_VERSION, FEATURES, ObsInput, encode};
+
+struct Counting;
+static ALLOCATIONS: AtomicUsize = AtomicUsize::new(0);
+
+unsafe impl GlobalAlloc for Counting {
+    unsafe fn alloc(&self, layout: Layout) -> *mut u8 {
+        ALLOCATIONS.fetch_add(1, Ordering::Relaxed);
+        unsafe { System.alloc(layout) }
+    }
+    unsafe fn dealloc(&self, ptr: *mut u8, layout: Layout) {
+        unsafe { System.dealloc(ptr, layout) }
+    }
+}
+
+#[global_allocator]
+static GLOBAL: Counting = Counting;
+
+struct World {
+    herders: Vec<[f32; 3]>,
+    targets: Vec<[f32; 2]>,
+}
+
+fn world(n: usize, m: usize) -> World {
+    let mut rng = SplitMix64::new(n as u64 * 31 + m as u64);
+    World {
+        herders: (0..m)
+            .map(|_| {
+                [
+                    rng.uniform(0.0, 500.0) as f32,
+                    rng.uniform(0.0, 500.0) as f32,
+                    2.0,
+                ]
+            })
+            .collect(),
+        targets: (0..n)
+            .map(|_| {
+                [
+                    rng.uniform(150.0, 350.0) as f32,
+                    rng.uniform(150.0, 350.0) as f32,
+                ]
+            })
+            .collect(),
+    }
+}
+
+fn input(w: &World) -> ObsInput<'_> {
+    ObsInput {
+        own_index: 0,
+        herders: &w.herders,
+        targets: &w.targets,
+        goal: [400.0, 400.0],
+        goal_radius: 45.0,
+        area: [500.0, 500.0, 10.0],
+        max_speed: 5.0,
+    }
+}
+
+fn model() -> Vec<u8> {
+    let shape = ActorShape {
+        features: FEATURES,
+        hidden: 64,
+        shared_layers: 2,
+    };
+    let calibration: Vec<[f32; FEATURES]> = [16, 256, 1024]
+        .iter()
+        .map(|&n| {
+            let mut f = [0.0; FEATURES];
+            encode(&input(&world(n, 4)), &mut f).unwrap();
+            f
+        })
+        .collect();
+    let meta = ModelMeta {
+        encoder_version: ENCODER_VERSION,
+        max_speed: 5.0,
+    };
+    quantize(
+        &FloatActor::random(shape, 1),
+        meta,
+        calibration.iter().map(|f| (Task::Driving, &f[..])),
+    )
+    .unwrap()
+}
+
+fn decide(actor: &Actor<'_>, input: &ObsInput<'_>) -> [f32; 3] {
+    let mut features = [0.0; FEATURES];
+    match encode(input, &mut features) {
+        Ok(frame) => frame.action_to_world(actor.infer(Task::Driving, &features)),
+        Err(_) => [0.0; 3],
+    }
+}
+
+fn bench(c: &mut Criterion) {
+    let bytes = model();
+    let actor = Actor::from_bytes(&bytes).unwrap();
+    let mut group = c.benchmark_group("decide");
+    for n in [16usize, 256, 1024] {
+        let adaptive = 1usize << ((n.ilog2() / 2) as usize);
+        for m in [4, adaptive] {
+            let w = world(n, m);
+            let before = ALLOCATIONS.load(Ordering::Relaxed);
+            for _ in 0..100 {
+                black_box(decide(&actor, &input(&w)));
+            }
+            let allocations = ALLOCATIONS.load(Ordering::Relaxed) - before;
+            assert_eq!(allocations, 0, "encode + infer allocated at N={n}, M={m}");
+            group.bench_with_input(
+                BenchmarkId::new(format!("encode+infer/M={m}"), n),
+                &w,
+                |b, w| b.iter(|| decide(&actor, black_box(&input(w)))),
+            );
+            if m == adaptive {
+                break;
+            }
+        }
+    }
+    let w = world(1024, 4);
+    let mut features = [0.0; FEATURES];
+    encode(&input(&w), &mut features).unwrap();
+    group.bench_function("infer only (H=64, S=2)", |b| {
+        b.iter(|| actor.infer(Task::Driving, black_box(&features)))
+    });
+    group.finish();
+}
+
+criterion_group!(benches, bench);
+criterion_main!(benches);

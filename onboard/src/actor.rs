@@ -1,0 +1,152 @@
+//! The int8 multi-task actor (the paper's Fig. 2) over a decoded model file.
+//!
+//! `features -> [task input layer, ReLU] -> [shared layer, ReLU] x S -> [task output layer]`
+//! `-> dequantize -> tanh`, all in fixed-size stack buffers ([`MAX_FEATURES`], [`MAX_WIDTH`]
+//! bytes each), no heap and no panic for any model [`decode`] accepts. The arithmetic is
+//! specified in [`skyherd_model::format`]; the int8 output of the task output layer is what the
+//! golden vectors in `models/golden/` pin bit for bit.
+//!
+//! The action is a normalised velocity in `[-1, 1]^3` in the encoder's
+//! [`LocalFrame`](crate::obs::LocalFrame); `LocalFrame::action_to_world` turns it into m/s.
+//!
+//! The float reference beside this path is `skyherd_model::FloatActor` (feature `std` of the
+//! model crate); `tests/actor.rs` checks the two against each other.
+//!
+//! ```
+//! # #[cfg(feature = "std")] {
+//! use skyherd_model::{quantize, ActorShape, FloatActor, ModelMeta, Task};
+//! use skyherd_onboard::actor::Actor;
+//! use skyherd_onboard::obs::{ENCODER_VERSION, FEATURES};
+//!
+//! // Seeded, untrained weights stand in for a trained model here.
+//! let shape = ActorShape { features: FEATURES, hidden: 32, shared_layers: 2 };
+//! let float = FloatActor::random(shape, 5);
+//! let calibration = [[0.25_f32; FEATURES], [-0.5; FEATURES]];
+//! let meta = ModelMeta { encoder_version: ENCODER_VERSION, max_speed: 5.0 };
+//! let bytes = quantize(&float, meta, calibration.iter().map(|f| (Task::Driving, &f[..]))).unwrap();
+//!
+//! let actor = Actor::from_bytes(&bytes).unwrap();
+//! let action = actor.infer(Task::Driving, &[0.1; FEATURES]);
+//! assert!(action.iter().all(|a| (-1.0..=1.0).contains(a)));
+//! # }
+//! ```
+
+use libm::{roundf, tanhf};
+use skyherd_model::format::{ACTIONS, requantize};
+pub use skyherd_model::format::{MAX_FEATURES, MAX_WIDTH};
+use skyherd_model::{FormatError, LayerView, ModelView, Task, decode};
+
+use crate::obs::{ENCODER_VERSION, FEATURES};
+
+/// The int8 actor, checked against this build's observation encoder.
+#[derive(Clone, Copy, Debug)]
+pub struct Actor<'m> {
+    model: ModelView<'m>,
+}
+
+impl<'m> Actor<'m> {
+    /// An actor over a decoded model; fails with [`FormatError::EncoderMismatch`] unless the model
+    /// was made for [`ENCODER_VERSION`] and [`FEATURES`].
+    pub fn new(model: ModelView<'m>) -> Result<Actor<'m>, FormatError> {
+        if let Err(e) = model.check_encoder(ENCODER_VERSION, FEATURES) {
+            log::warn!("model {:#010x} rejected: {}", model.crc(), e);
+            return Err(e);
+        }
+        log::info!(
+            "actor: model {:#010x}, {} features, hidden {} x {} shared, {} int8 weights, max speed {} m/s",
+            model.crc(),
+            model.features,
+            model.hidden,
+            model.shared_layers,
+            model.weight_count(),
+            model.max_speed
+        );
+        Ok(Actor { model })
+    }
+
+    /// [`decode`]s `bytes` and checks the encoder, see [`Actor::new`].
+    pub fn from_bytes(bytes: &'m [u8]) -> Result<Actor<'m>, FormatError> {
+        Actor::new(decode(bytes)?)
+    }
+
+    /// The model behind the actor.
+    pub fn model(&self) -> &ModelView<'m> {
+        &self.model
+    }
+
+    /// Speed in m/s that a normalised action of 1 stands for (from the model file).
+    pub fn max_speed(&self) -> f32 {
+        self.model.max_speed
+    }
+
+    /// The normalised action in `[-1, 1]^3` (local frame) for an encoded observation.
+    pub fn infer(&self, task: Task, features: &[f32; FEATURES]) -> [f32; 3] {
+        infer_any(&self.model, task, features)
+    }
+
+    /// The int8 output of the task output layer, before dequantization and `tanh`.
+    pub fn infer_int8(&self, task: Task, features: &[f32; FEATURES]) -> [i8; 3] {
+        infer_int8_any(&self.model, task, features)
+    }
+}
+
+/// Quantizes the model input: `q_j = clamp(round_half_away(x_j / scale_j) + zp_j, -128, 127)`.
+///
+/// Reads the first `model.features` values of `features` (missing ones count as 0; NaN becomes
+/// 0 before the zero point is added) into the front of `out`.
+pub fn quantize_input(model: &ModelView<'_>, features: &[f32], out: &mut [i8; MAX_FEATURES]) {
+    for (j, q) in out.iter_mut().enumerate().take(model.features) {
+        let x = features.get(j).copied().unwrap_or(0.0);
+        let scaled = roundf(x / model.input_scale(j)) + model.input_zero_point(j) as f32;
+        *q = scaled.clamp(-128.0, 127.0) as i8;
+    }
+}
+
+/// One int8 dense layer: `y = clamp(zp + requantize(bias + W x), floor, 127)`.
+///
+/// Reads `layer.inputs` values of `input`, writes `layer.outputs` values of `output`.
+#[inline]
+pub fn dense_int8(layer: &LayerView<'_>, input: &[i8], output: &mut [i8]) {
+    let input = input.get(..layer.inputs).unwrap_or(input);
+    let floor = layer.output_floor() as i32;
+    let zero_point = layer.output_zero_point as i32;
+    for (o, y) in output.iter_mut().enumerate().take(layer.outputs) {
+        let dot: i32 = layer
+            .row(o)
+            .iter()
+            .zip(input)
+            .map(|(&w, &x)| (w as i8 as i32) * (x as i32))
+            .sum();
+        let acc = layer.bias(o).wrapping_add(dot);
+        let scaled =
+            requantize(acc, layer.multiplier(o), layer.shift(o)).saturating_add(zero_point);
+        *y = scaled.clamp(floor, i8::MAX as i32) as i8;
+    }
+}
+
+/// The int8 output of `task`'s output layer for any decoded model, whatever its feature count.
+pub fn infer_int8_any(model: &ModelView<'_>, task: Task, features: &[f32]) -> [i8; 3] {
+    let mut input = [0i8; MAX_FEATURES];
+    let mut a = [0i8; MAX_WIDTH];
+    let mut b = [0i8; MAX_WIDTH];
+    quantize_input(model, features, &mut input);
+    dense_int8(model.task_input(task), &input, &mut a);
+    for layer in model.shared() {
+        dense_int8(layer, &a, &mut b);
+        core::mem::swap(&mut a, &mut b);
+    }
+    let mut out = [0i8; ACTIONS];
+    dense_int8(model.task_output(task), &a, &mut out);
+    out
+}
+
+/// `tanh(scale * (q - zp))` with the task output layer's quantization: the normalised action.
+pub fn dequantize_action(model: &ModelView<'_>, task: Task, q: [i8; 3]) -> [f32; 3] {
+    let layer = model.task_output(task);
+    q.map(|q| tanhf(layer.output_scale * (q as i32 - layer.output_zero_point as i32) as f32))
+}
+
+/// The normalised action for any decoded model, whatever its feature count.
+pub fn infer_any(model: &ModelView<'_>, task: Task, features: &[f32]) -> [f32; 3] {
+    dequantize_action(model, task, infer_int8_any(model, task, features))
+}
