@@ -45,6 +45,8 @@
 #![cfg_attr(not(feature = "std"), no_std)]
 
 pub mod actor;
+#[cfg(feature = "std")]
+pub mod daemon;
 pub mod frame;
 pub mod obs;
 pub mod safety;

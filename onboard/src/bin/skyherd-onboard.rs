@@ -1,0 +1,163 @@
+//! `skyherd-onboard`: the companion-computer daemon that flies one drone with the int8 actor.
+//!
+//! ```text
+//! skyherd-onboard run --model models/herd.skym --system-id 1 --herder-index 0 \
+//!     --autopilot udpout:127.0.0.1:14540 --ground udpin:0.0.0.0:14600 --key uplink.key
+//! skyherd-onboard run ... --sim-clock          # lockstep with a simulator's time_boot_ms
+//! skyherd-onboard self-test [--model FILE]     # no sockets; prints one line
+//! ```
+//! Logging through `RUST_LOG` (default `info`).
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result, bail};
+use clap::{Parser, Subcommand, ValueEnum};
+use skyherd_onboard::actor::Actor;
+use skyherd_onboard::daemon::core::{CoreConfig, DaemonCore, Flavour};
+use skyherd_onboard::daemon::io::{ClockMode, Daemon, LinkOptions, parse_key};
+use skyherd_onboard::daemon::selftest;
+
+#[derive(Parser, Debug)]
+#[command(
+    name = "skyherd-onboard",
+    version,
+    about = "skyherd onboard daemon: flies one drone with the int8 MTDDPG actor over MAVLink"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand, Debug)]
+enum Command {
+    /// Connect to the autopilot and the ground station and fly missions.
+    Run(RunArgs),
+    /// Exercise the core without sockets (model, encoder, actor, safety, wire, mission flow).
+    SelfTest {
+        /// A model file to check instead of the built-in seeded one.
+        #[arg(long)]
+        model: Option<PathBuf>,
+    },
+}
+
+#[derive(clap::Args, Debug)]
+struct RunArgs {
+    /// Model file (.skym) with the int8 actor.
+    #[arg(long)]
+    model: PathBuf,
+    /// Autopilot link: udpout:HOST:PORT, udpin:HOST:PORT, serial:DEVICE:BAUD, tcpout:HOST:PORT.
+    #[arg(long, default_value = "udpout:127.0.0.1:14540")]
+    autopilot: String,
+    /// Ground link, same syntax.
+    #[arg(long, default_value = "udpin:0.0.0.0:14600")]
+    ground: String,
+    /// MAVLink 2 signing key for the ground link (32 raw bytes or 64 hex digits). Without it
+    /// unsigned uplink is accepted, which is for tests only.
+    #[arg(long)]
+    key: Option<PathBuf>,
+    /// This drone's MAVLink system id (its autopilot's).
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u8).range(1..=254))]
+    system_id: u8,
+    /// This drone's index in the ground's world snapshots [default: system id - 1].
+    #[arg(long)]
+    herder_index: Option<usize>,
+    /// Autopilot family.
+    #[arg(long, value_enum, default_value_t = FlavourArg::Px4)]
+    flavour: FlavourArg,
+    /// Control rate in wall-clock mode, Hz.
+    #[arg(long, default_value_t = 20.0)]
+    rate_hz: f32,
+    /// Take time from the autopilot's time_boot_ms and tick once per LOCAL_POSITION_NED.
+    #[arg(long)]
+    sim_clock: bool,
+    /// Speed limit, m/s [default: the model's].
+    #[arg(long)]
+    max_speed: Option<f32>,
+}
+
+#[derive(Clone, Copy, Debug, ValueEnum)]
+enum FlavourArg {
+    /// PX4 (OFFBOARD).
+    Px4,
+    /// ArduPilot (GUIDED).
+    Ardupilot,
+}
+
+fn read(path: &Path, what: &str) -> Result<Vec<u8>> {
+    std::fs::read(path).with_context(|| format!("cannot read the {what} {}", path.display()))
+}
+
+fn run(args: RunArgs) -> Result<()> {
+    let model_bytes = read(&args.model, "model file")?;
+    let actor = Actor::from_bytes(&model_bytes)
+        .with_context(|| format!("model file {} is not usable", args.model.display()))?;
+    let signing_key = match &args.key {
+        Some(path) => {
+            Some(parse_key(&read(path, "key file")?).with_context(|| path.display().to_string())?)
+        }
+        None => None,
+    };
+    let flavour = match args.flavour {
+        FlavourArg::Px4 => Flavour::Px4,
+        FlavourArg::Ardupilot => Flavour::ArduPilot,
+    };
+    let herder_index = args.herder_index.unwrap_or(usize::from(args.system_id) - 1);
+    let mut config = CoreConfig::new(args.system_id, herder_index, flavour);
+    config.max_speed = args.max_speed.unwrap_or(actor.max_speed());
+    if !(config.max_speed.is_finite() && config.max_speed > 0.0) {
+        bail!(
+            "--max-speed must be a positive number of m/s, got {}",
+            config.max_speed
+        );
+    }
+    let clock = if args.sim_clock {
+        ClockMode::Simulator
+    } else {
+        ClockMode::Wall {
+            rate_hz: args.rate_hz,
+        }
+    };
+    let options = LinkOptions {
+        autopilot: args.autopilot,
+        ground: args.ground,
+        signing_key,
+        clock,
+    };
+    log::info!(
+        "skyherd-onboard {}: system {} (herder {herder_index}), {flavour:?}, {clock:?}, max {} m/s",
+        env!("CARGO_PKG_VERSION"),
+        args.system_id,
+        config.max_speed
+    );
+    // Runs until the process is killed; holding is the autopilot's job once we are gone
+    // (PX4 and ArduPilot fail safe when setpoints stop).
+    let mut daemon = Daemon::connect(&options, DaemonCore::new(config, actor))?;
+    daemon.run()?;
+    Ok(())
+}
+
+fn main() -> Result<()> {
+    let cli = Cli::parse();
+    // The self-test's one line is its output; its holds and warnings are expected.
+    let default_level = match cli.command {
+        Command::Run(_) => "info",
+        Command::SelfTest { .. } => "error",
+    };
+    env_logger::Builder::from_env(env_logger::Env::default().default_filter_or(default_level))
+        .init();
+    match cli.command {
+        Command::Run(args) => run(args),
+        Command::SelfTest { model } => {
+            let file = match &model {
+                Some(path) => Some((path.display().to_string(), read(path, "model file")?)),
+                None => None,
+            };
+            let report = selftest::run(
+                file.as_ref()
+                    .map(|(name, bytes)| (name.as_str(), &bytes[..])),
+            )?;
+            println!("{report}");
+            Ok(())
+        }
+    }
+}
