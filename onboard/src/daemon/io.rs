@@ -112,7 +112,10 @@ impl fmt::Display for IoError {
             } => write!(f, "cannot open the {link} link {address:?}: {source}"),
             IoError::BadKey(why) => write!(f, "bad signing key: {why}"),
             IoError::BadRate(hz) => {
-                write!(f, "control rate must be at least {MIN_RATE_HZ} Hz, got {hz}")
+                write!(
+                    f,
+                    "control rate must be at least {MIN_RATE_HZ} Hz, got {hz}"
+                )
             }
             IoError::LinksClosed => f.write_str("both MAVLink links closed"),
         }
