@@ -1,5 +1,13 @@
 //! skyherd-ground: the ground station's library.
 //!
+//! * [`link`]: MAVLink 2 fleet links (UDP, TCP, serial), signing, per-vehicle state,
+//!   mission commands with COMMAND_ACK matching.
+//! * [`tlog`]: `.tlog` writer (pymavlink's format) with an injectable clock.
 //! * [`tracking`]: multi-target tracker over anonymous detections (constant-velocity Kalman
 //!   filters, grid gating, clustered assignment, M-of-N birth, death by misses).
+//!
+//! Frames: the tracker works in the simulator frame (x east, y north, metres); MAVLink
+//! positions are LOCAL_NED and are converted only through `skyherd_onboard::frame`.
+pub mod link;
+pub mod tlog;
 pub mod tracking;
