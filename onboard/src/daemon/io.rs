@@ -144,23 +144,21 @@ pub fn parse_key(bytes: &[u8]) -> Result<[u8; KEY_LEN], IoError> {
     if let Ok(raw) = <[u8; KEY_LEN]>::try_from(bytes) {
         return Ok(raw);
     }
-    let text = std::str::from_utf8(bytes).map(str::trim).map_err(|_| {
+    let bad = || {
         IoError::BadKey(format!(
             "{} bytes, expected 32 raw bytes or 64 hex digits",
             bytes.len()
         ))
-    })?;
-    if text.len() != 2 * KEY_LEN || !text.bytes().all(|b| b.is_ascii_hexdigit()) {
-        return Err(IoError::BadKey(format!(
-            "{} bytes, expected 32 raw bytes or 64 hex digits",
-            bytes.len()
-        )));
+    };
+    let hex = bytes.trim_ascii();
+    if hex.len() != 2 * KEY_LEN {
+        return Err(bad());
     }
+    let nibble = |c: u8| char::from(c).to_digit(16).ok_or_else(bad);
     let mut key = [0u8; KEY_LEN];
-    for (k, pair) in key.iter_mut().zip(text.as_bytes().chunks(2)) {
-        // Both digits were checked above.
-        let digits = std::str::from_utf8(pair).unwrap_or("00");
-        *k = u8::from_str_radix(digits, 16).unwrap_or(0);
+    for (k, pair) in key.iter_mut().zip(hex.chunks_exact(2)) {
+        // Two hex digits: at most 255.
+        *k = (nibble(pair[0])? * 16 + nibble(pair[1])?) as u8;
     }
     Ok(key)
 }
