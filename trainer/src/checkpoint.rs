@@ -324,7 +324,7 @@ mod tests {
         };
         let mut agent = Agent::new(5, 2, network, config.ddpg, &mut rng);
         // Take a few steps so targets, moments and counters differ from a fresh agent.
-        let mut batch = Batch {
+        let batch = Batch {
             size: 2,
             obs: vec![0.1, 0.2, 0.3, 0.4, 0.5, -0.1, -0.2, -0.3, -0.4, -0.5],
             actions: vec![0.5, 0.0, -0.5, 0.1, 0.2, 0.3],

@@ -53,8 +53,9 @@ pub enum ConfigError {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct CurriculumStage {
-    /// The stage starts once this fraction of the DDPG environment steps is done (0 for the
-    /// first stage).
+    /// The stage starts once this fraction of the DDPG phase is done (0 for the first stage);
+    /// the fraction is the larger of env steps over `training.env_steps` and wall time over
+    /// `training.wall_clock_limit_s`, so a run cut by its time budget still reaches every stage.
     pub from_progress: f64,
     /// Target counts N drawn uniformly per episode.
     pub targets: Vec<usize>,
@@ -82,9 +83,9 @@ impl Default for CurriculumConfig {
         CurriculumConfig {
             enabled: true,
             stages: vec![
-                stage(0.0, &[1, 2, 4, 8], &[1, 2, 4]),
-                stage(0.3, &[4, 8, 16, 32], &[1, 2, 4, 0]),
-                stage(0.6, &[8, 16, 32, 64, 128], &[1, 4, 8, 0]),
+                stage(0.0, &[2, 4, 8, 16], &[1, 2, 4]),
+                stage(0.25, &[4, 8, 16, 32, 64], &[1, 2, 4, 8, 0]),
+                stage(0.5, &[8, 16, 32, 64, 128, 256], &[1, 4, 8, 0]),
             ],
         }
     }
@@ -109,18 +110,22 @@ pub struct WarmStartConfig {
     pub imitation_learning_rate: f32,
     /// Critic-only TD updates on the demonstrations before DDPG starts.
     pub critic_updates: usize,
+    /// During DDPG, weight of the pull towards the demonstrated actions (TD3+BC's
+    /// `1 / alpha`; the Q term is normalised by mean |Q|). 0 is plain DDPG after the warm start.
+    pub imitation_weight: f32,
 }
 
 impl Default for WarmStartConfig {
     fn default() -> Self {
         WarmStartConfig {
             enabled: true,
-            driving_baseline: "farthest".into(),
-            collecting_baseline: "farthest".into(),
+            driving_baseline: "lama".into(),
+            collecting_baseline: "lama".into(),
             episodes_per_task: 48,
             imitation_updates: 20_000,
             imitation_learning_rate: 1e-3,
             critic_updates: 5_000,
+            imitation_weight: 0.4,
         }
     }
 }
@@ -146,7 +151,7 @@ impl Default for RewardConfig {
         RewardConfig {
             leave_correction: true,
             normalize_by_step_cost: true,
-            flight_scale: 1.0,
+            flight_scale: 0.1,
         }
     }
 }
@@ -168,13 +173,15 @@ pub struct EvalConfig {
 impl Default for EvalConfig {
     fn default() -> Self {
         EvalConfig {
-            every_updates: 5_000,
-            episodes: 6,
+            every_updates: 10_000,
+            episodes: 8,
             seed_base: 1_000_000_000,
             scenarios: vec![
                 ("driving".into(), 16, 4),
                 ("driving".into(), 64, 4),
+                ("driving".into(), 256, 0),
                 ("collecting".into(), 16, 4),
+                ("collecting".into(), 64, 4),
             ],
         }
     }
@@ -203,20 +210,24 @@ pub struct LoopConfig {
     pub checkpoint_every_s: f64,
     /// Threads for rollouts and evaluation (the machine has 2 cores).
     pub threads: usize,
+    /// Train with the scenario's test-time noise (boids parameters, sensing, actuation), so
+    /// that the policy meets in training what it meets in evaluation.
+    pub noise: bool,
 }
 
 impl Default for LoopConfig {
     fn default() -> Self {
         LoopConfig {
-            env_steps: 300_000,
+            env_steps: 1_000_000,
             envs: 8,
             updates_per_env_step: 0.5,
             replay_capacity: 500_000,
             learning_starts: 2_000,
             episode_step_limit: 600,
-            wall_clock_limit_s: 3_000.0,
+            wall_clock_limit_s: 2_400.0,
             checkpoint_every_s: 120.0,
             threads: 2,
+            noise: true,
         }
     }
 }
@@ -299,7 +310,10 @@ impl TrainConfig {
             return bad("ddpg.tau", "must be in (0, 1]");
         }
         if d.batch_size < 2 {
-            return bad("ddpg.batch_size", "must be >= 2 (one row per task at least)");
+            return bad(
+                "ddpg.batch_size",
+                "must be >= 2 (one row per task at least)",
+            );
         }
         if self.network.hidden == 0 || self.network.hidden > 255 {
             return bad("network.hidden", "must be in 1..=255 (onboard capacity)");
@@ -356,6 +370,13 @@ mod tests {
     use super::*;
 
     #[test]
+    fn the_shipped_config_file_spells_out_the_defaults() {
+        let text = include_str!("../configs/mtddpg-v1.toml");
+        let file = TrainConfig::from_toml_str(text).expect("shipped config parses");
+        assert_eq!(file, TrainConfig::default());
+    }
+
+    #[test]
     fn round_trips_through_toml() {
         let config = TrainConfig::default();
         let back = TrainConfig::from_toml_str(&config.to_toml()).expect("own output parses");
@@ -374,10 +395,10 @@ mod tests {
     #[test]
     fn curriculum_moves_through_stages_and_can_be_switched_off() {
         let mut c = TrainConfig::default();
-        assert_eq!(c.stage_at(0.0).targets, vec![1, 2, 4, 8]);
-        assert_eq!(c.stage_at(0.45).targets, vec![4, 8, 16, 32]);
-        assert!(c.stage_at(0.99).targets.contains(&128));
+        assert_eq!(c.stage_at(0.0).targets, vec![2, 4, 8, 16]);
+        assert_eq!(c.stage_at(0.45).targets, vec![4, 8, 16, 32, 64]);
+        assert!(c.stage_at(0.99).targets.contains(&256));
         c.curriculum.enabled = false;
-        assert!(c.stage_at(0.0).targets.contains(&128));
+        assert!(c.stage_at(0.0).targets.contains(&256));
     }
 }

@@ -68,11 +68,11 @@ impl Default for DdpgConfig {
         DdpgConfig {
             gamma: 0.99,
             tau: 0.005,
-            actor_learning_rate: 1e-4,
+            actor_learning_rate: 5e-5,
             critic_learning_rate: 3e-4,
             batch_size: 256,
             policy_frequency: 2,
-            reward_scale: 0.01,
+            reward_scale: 0.1,
             exploration_noise: 0.1,
         }
     }
@@ -186,19 +186,59 @@ impl Agent {
     /// One MTDDPG update from one batch per task (`batches[t]` feeds task `t`; empty ones are
     /// skipped).
     pub fn update(&mut self, batches: &[Batch]) -> UpdateStats {
+        self.update_with_imitation(batches, &[], 0.0)
+    }
+
+    /// An MTDDPG update whose actor step also pulls towards demonstrated actions
+    /// (`demos[t]`, TD3+BC style): the actor minimises
+    /// `-Q(s, mu(s)) / mean|Q| + imitation_weight * |mu(s_demo) - a_demo|^2`.
+    /// With `imitation_weight = 0` this is plain DDPG (no Q normalisation).
+    pub fn update_with_imitation(
+        &mut self,
+        batches: &[Batch],
+        demos: &[Batch],
+        imitation_weight: f32,
+    ) -> UpdateStats {
+        let c = self.config;
+        let mut stats = self.critic_step(batches);
+        if stats.critic_loss.is_nan() {
+            return stats;
+        }
+        // 2. Actor and 3. targets, every `policy_frequency` critic updates.
+        if self.updates % u64::from(c.policy_frequency.max(1)) == 0 {
+            stats.actor_loss = self.actor_step(batches, demos, imitation_weight);
+            self.target_actor.soft_update_from(&self.actor, c.tau);
+            self.target_critic.soft_update_from(&self.critic, c.tau);
+        }
+        stats
+    }
+
+    /// Policy evaluation only: a critic step towards the target actor's TD target and a soft
+    /// update of the target critic; the actor stays put (warm-start critic pretraining).
+    pub fn evaluate_policy_step(&mut self, batches: &[Batch]) -> UpdateStats {
+        let stats = self.critic_step(batches);
+        self.target_critic
+            .soft_update_from(&self.critic, self.config.tau);
+        stats
+    }
+
+    /// 1. Critic: regress Q(s, a) onto the TD target, both tasks into one gradient.
+    fn critic_step(&mut self, batches: &[Batch]) -> UpdateStats {
         let obs_dim = self.obs_dim();
         let total: usize = batches.iter().map(|b| b.size).sum();
         if total == 0 {
-            return UpdateStats::default();
+            return UpdateStats {
+                critic_loss: f32::NAN,
+                ..UpdateStats::default()
+            };
         }
         let c = self.config;
         let mut stats = UpdateStats::default();
-
-        // 1. Critic: regress Q(s, a) onto the TD target, both tasks into one gradient.
         let mut critic_grads = self.critic.zeros_like();
         let mut tape = Tape::default();
         for (task, b) in batches.iter().enumerate().filter(|(_, b)| b.size > 0) {
-            self.target_actor.forward(task, &b.next_obs, b.size, &mut tape);
+            self.target_actor
+                .forward(task, &b.next_obs, b.size, &mut tape);
             let next_actions = tape.output().to_vec();
             let next_input = concat_rows(&b.next_obs, obs_dim, &next_actions, b.size);
             self.target_critic
@@ -229,32 +269,38 @@ impl Agent {
         self.critic_optimizer
             .update(self.critic.layers_mut(), critic_grads.layers());
         self.updates += 1;
-
-        // 2. Actor and 3. targets, every `policy_frequency` critic updates.
-        if self.updates % u64::from(c.policy_frequency.max(1)) == 0 {
-            stats.actor_loss = self.actor_step(batches, &mut tape);
-            self.target_actor.soft_update_from(&self.actor, c.tau);
-            self.target_critic.soft_update_from(&self.critic, c.tau);
-        }
         stats
     }
 
-    /// Gradient ascent on `mean Q(s, mu(s))`; returns `-mean Q`.
-    fn actor_step(&mut self, batches: &[Batch], tape: &mut Tape) -> f32 {
+    /// Gradient ascent on `mean Q(s, mu(s))` (plus the imitation pull); returns `-mean Q`.
+    fn actor_step(&mut self, batches: &[Batch], demos: &[Batch], imitation_weight: f32) -> f32 {
         let obs_dim = self.obs_dim();
         let total: usize = batches.iter().map(|b| b.size).sum();
         let mut actor_grads = self.actor.zeros_like();
         let mut actor_tape = Tape::default();
+        let mut tape = Tape::default();
         let mut loss = 0.0;
+        let mut q_tapes = Vec::new();
+        let mut mean_abs_q = 0.0;
         for (task, b) in batches.iter().enumerate().filter(|(_, b)| b.size > 0) {
             self.actor.forward(task, &b.obs, b.size, &mut actor_tape);
             let input = concat_rows(&b.obs, obs_dim, actor_tape.output(), b.size);
-            self.critic.forward(task, &input, b.size, tape);
+            self.critic.forward(task, &input, b.size, &mut tape);
             loss -= tape.output().iter().sum::<f32>() / total as f32;
-            let d_q = vec![-1.0 / total as f32; b.size];
+            mean_abs_q += tape.output().iter().map(|q| q.abs()).sum::<f32>() / total as f32;
+            q_tapes.push((task, actor_tape.clone(), tape.clone()));
+        }
+        // TD3+BC's normalisation keeps the imitation weight meaningful whatever Q's scale.
+        let q_scale = if imitation_weight > 0.0 {
+            1.0 / mean_abs_q.max(1e-3)
+        } else {
+            1.0
+        };
+        for (_, a_tape, q_tape) in &q_tapes {
+            let d_q = vec![-q_scale / total as f32; q_tape.batch];
             let d_input = self
                 .critic
-                .backward(tape, &d_q, None, true)
+                .backward(q_tape, &d_q, None, true)
                 .unwrap_or_default();
             let stride = obs_dim + ACTION_DIM;
             let d_action: Vec<f32> = d_input
@@ -262,7 +308,21 @@ impl Agent {
                 .flat_map(|row| row[obs_dim..].iter().copied())
                 .collect();
             self.actor
-                .backward(&actor_tape, &d_action, Some(&mut actor_grads), false);
+                .backward(a_tape, &d_action, Some(&mut actor_grads), false);
+        }
+        if imitation_weight > 0.0 {
+            let demo_total: usize = demos.iter().map(|b| b.size * ACTION_DIM).sum();
+            for (task, b) in demos.iter().enumerate().filter(|(_, b)| b.size > 0) {
+                self.actor.forward(task, &b.obs, b.size, &mut actor_tape);
+                let d: Vec<f32> = actor_tape
+                    .output()
+                    .iter()
+                    .zip(&b.actions)
+                    .map(|(y, t)| imitation_weight * 2.0 * (y - t) / demo_total as f32)
+                    .collect();
+                self.actor
+                    .backward(&actor_tape, &d, Some(&mut actor_grads), false);
+            }
         }
         self.actor_optimizer
             .update(self.actor.layers_mut(), actor_grads.layers());
@@ -355,7 +415,10 @@ mod tests {
         }
         for (task, target) in best.iter().enumerate() {
             let a = agent.act(task, &[0.1, -0.2]);
-            let err: f32 = (0..3).map(|k| (a[k] - target[k]).powi(2)).sum::<f32>().sqrt();
+            let err: f32 = (0..3)
+                .map(|k| (a[k] - target[k]).powi(2))
+                .sum::<f32>()
+                .sqrt();
             assert!(err < 0.15, "task {task}: {a:?} vs {target:?}");
         }
     }

@@ -4,6 +4,12 @@
 pub mod checkpoint;
 pub mod config;
 pub mod ddpg;
+pub mod eval;
+pub mod export;
 pub mod network;
 pub mod nn;
+pub mod policy;
 pub mod replay;
+pub mod report;
+pub mod rollout;
+pub mod train;

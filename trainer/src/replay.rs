@@ -113,7 +113,9 @@ impl ReplayBuffer {
         for _ in 0..batch.size {
             let i = rng.random_range(0..self.len);
             batch.obs.extend_from_slice(&self.obs[i * o..(i + 1) * o]);
-            batch.actions.extend_from_slice(&self.actions[i * a..(i + 1) * a]);
+            batch
+                .actions
+                .extend_from_slice(&self.actions[i * a..(i + 1) * a]);
             batch.rewards.push(self.rewards[i]);
             batch
                 .next_obs

@@ -1,1 +1,255 @@
-fn main() {}
+//! `skyherd-trainer`: train the MTDDPG actor, export it as an int8 model file, evaluate it.
+//!
+//! ```text
+//! skyherd-trainer train  --config trainer/configs/mtddpg-v1.toml [--resume]
+//! skyherd-trainer export --checkpoint runs/mtddpg-v1/best.safetensors --out models/mtddpg-v1.skym
+//! skyherd-trainer eval   --model models/mtddpg-v1.skym --episodes 20 --baselines
+//! ```
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use clap::{Parser, Subcommand};
+use indicatif::{ProgressBar, ProgressStyle};
+use skyherd_onboard::actor::Actor;
+use skyherd_sim::baseline::{Method, RulePolicy};
+use skyherd_trainer::checkpoint;
+use skyherd_trainer::config::TrainConfig;
+use skyherd_trainer::eval::{EvalScenario, evaluate_flat, markdown_table};
+use skyherd_trainer::export::{calibration_scenarios, export, parity, record_observations};
+use skyherd_trainer::policy::ActorPolicy;
+use skyherd_trainer::train::{Observer, train};
+
+#[derive(Parser)]
+#[command(
+    name = "skyherd-trainer",
+    about = "MTDDPG training and export for skyherd"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Train (warm start, MTDDPG, held-out evaluation) as configured.
+    Train {
+        /// The TOML config.
+        #[arg(long)]
+        config: PathBuf,
+        /// Continue from `<output_dir>/last.safetensors`.
+        #[arg(long)]
+        resume: bool,
+    },
+    /// Quantize a checkpoint's actor into an int8 model file and check it against the float
+    /// actor.
+    Export {
+        /// A checkpoint (`best.safetensors` or `last.safetensors`).
+        #[arg(long)]
+        checkpoint: PathBuf,
+        /// The model file to write.
+        #[arg(long)]
+        out: PathBuf,
+        /// Episode steps recorded per calibration scenario.
+        #[arg(long, default_value_t = 800)]
+        calibration_steps: u64,
+        /// Calibration episodes per scenario.
+        #[arg(long, default_value_t = 6)]
+        calibration_episodes: usize,
+    },
+    /// Evaluate an int8 model file (as it flies) and optionally the baselines, with test noise.
+    Eval {
+        /// The model file.
+        #[arg(long)]
+        model: PathBuf,
+        /// Episodes per scenario.
+        #[arg(long, default_value_t = 20)]
+        episodes: usize,
+        /// First episode seed (held out from training).
+        #[arg(long, default_value_t = 2_000_000_000)]
+        seed_base: u64,
+        /// Also run the four rule-based baselines.
+        #[arg(long)]
+        baselines: bool,
+        /// Scenarios as `task:N:M` (M = 0 adaptive); default: a standard set.
+        #[arg(long, value_delimiter = ',')]
+        scenarios: Vec<String>,
+        /// Worker threads.
+        #[arg(long, default_value_t = 2)]
+        threads: usize,
+    },
+}
+
+/// indicatif progress bar for the training phases.
+struct Bar {
+    bar: Option<ProgressBar>,
+}
+
+impl Observer for Bar {
+    fn phase(&mut self, name: &str, total: u64) {
+        if let Some(b) = self.bar.take() {
+            b.finish();
+        }
+        let bar = ProgressBar::new(total);
+        bar.set_style(
+            ProgressStyle::with_template(
+                "{prefix:>20} [{elapsed_precise}] {wide_bar} {pos}/{len} {msg}",
+            )
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+        );
+        bar.set_prefix(name.to_owned());
+        self.bar = Some(bar);
+    }
+    fn progress(&mut self, done: u64, message: &str) {
+        if let Some(b) = &self.bar {
+            b.set_position(done);
+            b.set_message(message.to_owned());
+        }
+    }
+    fn note(&mut self, line: &str) {
+        match &self.bar {
+            Some(b) => b.println(line),
+            None => eprintln!("{line}"),
+        }
+    }
+}
+
+fn parse_scenario(s: &str) -> Result<EvalScenario> {
+    let parts: Vec<&str> = s.split(':').collect();
+    if parts.len() != 3 {
+        bail!("scenario `{s}` is not task:N:M");
+    }
+    EvalScenario::from_triple(&(parts[0].to_owned(), parts[1].parse()?, parts[2].parse()?))
+        .with_context(|| format!("unknown task in `{s}`"))
+}
+
+fn main() -> Result<()> {
+    let cli = Cli::parse();
+    match cli.command {
+        Command::Train { config, resume } => {
+            let config = TrainConfig::load(&config)?;
+            let resume_from = if resume {
+                let path = config.output_dir.join("last.safetensors");
+                let c = checkpoint::load(&path)
+                    .with_context(|| format!("resuming from {}", path.display()))?;
+                eprintln!(
+                    "resuming at {} env steps, {} updates",
+                    c.progress.env_steps, c.agent.updates
+                );
+                Some(c)
+            } else {
+                None
+            };
+            let started = Instant::now();
+            let mut bar = Bar { bar: None };
+            let outcome = train(&config, resume_from, &mut bar)?;
+            if let Some(b) = bar.bar.take() {
+                b.finish();
+            }
+            println!(
+                "done: {} env steps, {} episodes, {:.0} s this session ({:.0} s total), {:.2} ms per update",
+                outcome.progress.env_steps,
+                outcome.progress.episodes,
+                started.elapsed().as_secs_f64(),
+                outcome.progress.wall_time_s,
+                1e3 * outcome.seconds_per_update
+            );
+            println!(
+                "best: success {:.1}%, time {:.2}x lower bound -> {}",
+                100.0 * outcome.progress.best_success,
+                outcome.progress.best_time_ratio,
+                outcome.best_checkpoint.display()
+            );
+            print!("{}", markdown_table("float (last)", &outcome.last_eval));
+        }
+        Command::Export {
+            checkpoint: path,
+            out,
+            calibration_steps,
+            calibration_episodes,
+        } => {
+            let c = checkpoint::load(&path)?;
+            let actor = &c.agent.actor;
+            // Calibration and parity use different episodes (seeds) of the same scenarios.
+            let scenarios = calibration_scenarios();
+            let calibration = record_observations(
+                actor,
+                &scenarios,
+                calibration_episodes,
+                3_000_000_000,
+                calibration_steps,
+                2,
+            )?;
+            let max_speed = skyherd_sim::Scenario::paper_drive().limits.herder as f32;
+            let bytes = export(actor, max_speed, &calibration)?;
+            let held_out = record_observations(actor, &scenarios, 2, 3_100_000_000, 600, 3)?;
+            let p = parity(actor, &bytes, &held_out)?;
+            if let Some(dir) = out.parent() {
+                std::fs::create_dir_all(dir)?;
+            }
+            std::fs::write(&out, &bytes)?;
+            println!(
+                "wrote {} ({} bytes), calibrated on {} observations",
+                out.display(),
+                bytes.len(),
+                calibration.len()
+            );
+            println!(
+                "parity on {} held-out observations: RMS {:.4} per component, {:.4} per vector, max {:.4} (units of max speed)",
+                p.samples, p.rms_component, p.rms_vector, p.max_component
+            );
+        }
+        Command::Eval {
+            model,
+            episodes,
+            seed_base,
+            baselines,
+            scenarios,
+            threads,
+        } => {
+            let bytes = std::fs::read(&model)?;
+            let actor = Actor::from_bytes(&bytes)
+                .map_err(|e| anyhow::anyhow!("{}: {e:?}", model.display()))?;
+            let scenarios: Vec<EvalScenario> = if scenarios.is_empty() {
+                [
+                    "driving:16:4",
+                    "driving:64:4",
+                    "driving:256:0",
+                    "collecting:16:4",
+                    "collecting:64:4",
+                ]
+                .iter()
+                .map(|s| parse_scenario(s))
+                .collect::<Result<_>>()?
+            } else {
+                scenarios
+                    .iter()
+                    .map(|s| parse_scenario(s))
+                    .collect::<Result<_>>()?
+            };
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()?;
+            println!(
+                "| scenario | method | episodes | success | time (s) | time / bound | path (m) |"
+            );
+            println!("|---|---|---|---|---|---|---|");
+            pool.install(|| -> Result<()> {
+                let rows =
+                    evaluate_flat(&scenarios, episodes, seed_base, || ActorPolicy::new(actor))?;
+                print!("{}", markdown_table("mtddpg-v1 (int8)", &rows));
+                if baselines {
+                    for method in Method::ALL {
+                        let rows = evaluate_flat(&scenarios, episodes, seed_base, || {
+                            RulePolicy::new(method)
+                        })?;
+                        print!("{}", markdown_table(method.as_str(), &rows));
+                    }
+                }
+                Ok(())
+            })?;
+        }
+    }
+    Ok(())
+}

@@ -1,0 +1,433 @@
+//! Experience collection: a set of simulator environments stepped together, every herder acting
+//! on its own encoded observation (decentralised execution), one transition per herder per step
+//! into the replay buffer of the environment's task.
+//!
+//! The learner's reward is the simulator's (with its documented leave correction when enabled),
+//! optionally with a weaker flight term, divided by the episode's step cost when normalising
+//! (see [`crate::config::RewardConfig`]).
+
+use rand::Rng;
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, Normal};
+use skyherd_model::Task;
+use skyherd_onboard::obs::{FEATURES, LocalFrame};
+use skyherd_sim::baseline::{Method, RulePolicy};
+use skyherd_sim::policy::act_all;
+use skyherd_sim::{Env, EnvError, HerderCount, Policy, RewardCorrection, Scenario, StepOutcome};
+
+use crate::config::{RewardConfig, TrainConfig};
+use crate::ddpg::ACTION_DIM;
+use crate::network::{MultiTaskMlp, Tape};
+use crate::policy::Observer;
+use crate::replay::ReplayBuffer;
+
+/// One training scenario: task, N and M (0 = adaptive).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Draw {
+    /// The task.
+    pub task: Task,
+    /// Targets N.
+    pub targets: usize,
+    /// Herders M, 0 for the adaptive count.
+    pub herders: usize,
+}
+
+/// The paper scenario of `draw`, with the learner's step limit, noise on or off, and the
+/// simulator's leave correction at the learner's gamma when `reward.leave_correction`.
+pub fn training_scenario(
+    draw: Draw,
+    step_limit: u64,
+    noise: bool,
+    reward: &RewardConfig,
+    gamma: f64,
+) -> Scenario {
+    let mut s = Scenario::paper(draw.task);
+    s.targets = draw.targets;
+    s.herders = if draw.herders == 0 {
+        HerderCount::Adaptive
+    } else {
+        HerderCount::Fixed(draw.herders)
+    };
+    s.step_limit = step_limit;
+    if !noise {
+        s = s.without_noise();
+    }
+    if reward.leave_correction {
+        s.reward.correction = RewardCorrection::LeaveCoversRemainingSteps { gamma };
+    }
+    s
+}
+
+/// The per-step cost of idling and flying at full speed, `k0 (k3 |r3| N + s k4 v_max M)` with
+/// `s` the flight scale: the natural unit of an episode's rewards.
+pub fn step_cost(s: &Scenario, flight_scale: f64) -> f64 {
+    let r = &s.reward;
+    let cost = r.k0
+        * (r.k3 * r.r3.abs() * s.targets as f64
+            + flight_scale * r.k4 * s.limits.herder * s.herder_count() as f64);
+    cost.max(1e-6)
+}
+
+/// The reward the learner sees for one step.
+pub fn learner_reward(out: &StepOutcome, reward: &RewardConfig, step_cost: f64) -> f32 {
+    let mut r = out.reward - (1.0 - reward.flight_scale) * out.terms.flight;
+    if reward.normalize_by_step_cost {
+        r /= step_cost;
+    }
+    r as f32
+}
+
+/// What one finished training episode did.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct EpisodeStats {
+    /// The scenario.
+    pub draw: Draw,
+    /// All targets reached the goal.
+    pub success: bool,
+    /// Steps taken.
+    pub steps: u64,
+    /// Sum of learner rewards.
+    pub learner_return: f64,
+    /// Sum of the paper's rewards.
+    pub paper_return: f64,
+}
+
+/// Who picks the actions.
+pub enum Controller<'a> {
+    /// The learned actor plus Gaussian exploration noise of this std (normalised units).
+    Actor(&'a MultiTaskMlp, f32),
+    /// The rule-based baselines (driving, collecting); their velocities are recorded as
+    /// normalised local-frame actions.
+    Baseline(Method, Method),
+}
+
+struct Slot {
+    env: Env,
+    draw: Draw,
+    step_cost: f64,
+    features: Vec<[f32; FEATURES]>,
+    frames: Vec<Option<LocalFrame>>,
+    rule: RulePolicy,
+    rule_method: Option<Method>,
+    learner_return: f64,
+    paper_return: f64,
+}
+
+/// Environments stepped together; slot `i` always runs task `i % 2`.
+pub struct Rollouts {
+    slots: Vec<Slot>,
+    observer: Observer,
+    rng: ChaCha8Rng,
+    reward: RewardConfig,
+    gamma: f64,
+    step_limit: u64,
+    noise: bool,
+    /// Environment steps taken (summed over slots).
+    pub env_steps: u64,
+}
+
+fn observe(observer: &mut Observer, slot: &mut Slot) {
+    let world = slot.env.observation();
+    observer.load(world, true);
+    let m = world.herders.len();
+    slot.features.resize(m, [0.0; FEATURES]);
+    slot.frames.resize(m, None);
+    for h in 0..m {
+        slot.frames[h] = observer.encode(world, h, &mut slot.features[h]).ok();
+    }
+}
+
+impl Rollouts {
+    /// `count` environments; the first scenario of each slot comes from `draw`.
+    pub fn new(
+        count: usize,
+        config: &TrainConfig,
+        rng: ChaCha8Rng,
+        draw: &mut dyn FnMut(&mut ChaCha8Rng, Task) -> Draw,
+    ) -> Result<Rollouts, EnvError> {
+        let mut r = Rollouts {
+            slots: Vec::with_capacity(count),
+            observer: Observer::default(),
+            rng,
+            reward: config.reward.clone(),
+            gamma: f64::from(config.ddpg.gamma),
+            step_limit: config.training.episode_step_limit,
+            noise: config.training.noise,
+            env_steps: 0,
+        };
+        for i in 0..count {
+            let task = Task::ALL[i % Task::COUNT];
+            let d = draw(&mut r.rng, task);
+            let slot = r.fresh_slot(d)?;
+            r.slots.push(slot);
+        }
+        Ok(r)
+    }
+
+    fn fresh_slot(&mut self, draw: Draw) -> Result<Slot, EnvError> {
+        let scenario =
+            training_scenario(draw, self.step_limit, self.noise, &self.reward, self.gamma);
+        let cost = step_cost(&scenario, self.reward.flight_scale);
+        let mut env = Env::new(scenario)?;
+        // Training episode seeds stay below the held-out evaluation seeds (>= 1e9).
+        let seed = self.rng.random_range(0..1_000_000_000u64);
+        env.reset(seed);
+        let mut slot = Slot {
+            env,
+            draw,
+            step_cost: cost,
+            features: Vec::new(),
+            frames: Vec::new(),
+            rule: RulePolicy::new(Method::FarthestTargets),
+            rule_method: None,
+            learner_return: 0.0,
+            paper_return: 0.0,
+        };
+        observe(&mut self.observer, &mut slot);
+        Ok(slot)
+    }
+
+    /// One step of every environment: actions, transitions into `replay[task]` (and the
+    /// `(features, action)` pairs into `demos[task]` when given), resets of finished episodes
+    /// with new scenarios from `draw`. Returns the episodes that finished.
+    pub fn step(
+        &mut self,
+        controller: &Controller<'_>,
+        replay: &mut [ReplayBuffer],
+        mut demos: Option<&mut [ReplayBuffer]>,
+        draw: &mut dyn FnMut(&mut ChaCha8Rng, Task) -> Draw,
+    ) -> Result<Vec<EpisodeStats>, EnvError> {
+        let actions = self.choose_actions(controller);
+        let mut finished = Vec::new();
+        let mut velocities = Vec::new();
+        for (i, slot_actions) in actions.iter().enumerate() {
+            let slot = &mut self.slots[i];
+            velocities.clear();
+            for (h, a) in slot_actions.iter().enumerate() {
+                let v = slot.frames[h].map_or([0.0; 3], |f| f.action_to_world(*a));
+                velocities.push([f64::from(v[0]), f64::from(v[1]), f64::from(v[2])]);
+            }
+            let out = slot.env.step(&velocities)?;
+            self.env_steps += 1;
+            let r = learner_reward(&out, &self.reward, slot.step_cost);
+            slot.learner_return += f64::from(r);
+            slot.paper_return += out.paper_reward;
+            let before = std::mem::take(&mut slot.features);
+            let before_frames = std::mem::take(&mut slot.frames);
+            observe(&mut self.observer, slot);
+            let task = slot.draw.task.index();
+            for h in 0..before.len() {
+                if before_frames[h].is_none() || slot.frames[h].is_none() {
+                    continue; // an observation the encoder refused carries no transition
+                }
+                replay[task].push(
+                    &before[h],
+                    &slot_actions[h],
+                    r,
+                    &slot.features[h],
+                    out.terminated,
+                );
+                if let Some(d) = demos.as_deref_mut() {
+                    d[task].push(&before[h], &slot_actions[h], r, &slot.features[h], false);
+                }
+            }
+            if out.terminated || out.truncated {
+                finished.push(EpisodeStats {
+                    draw: slot.draw,
+                    success: out.success,
+                    steps: slot.env.info().steps,
+                    learner_return: slot.learner_return,
+                    paper_return: slot.paper_return,
+                });
+                let task = slot.draw.task;
+                let d = draw(&mut self.rng, task);
+                self.slots[i] = self.fresh_slot(d)?;
+            }
+        }
+        Ok(finished)
+    }
+
+    fn choose_actions(&mut self, controller: &Controller<'_>) -> Vec<Vec<[f32; ACTION_DIM]>> {
+        match *controller {
+            Controller::Actor(actor, noise_std) => {
+                let mut out: Vec<Vec<[f32; 3]>> = self
+                    .slots
+                    .iter()
+                    .map(|s| vec![[0.0; 3]; s.features.len()])
+                    .collect();
+                let noise = Normal::new(0.0_f32, noise_std.max(0.0)).ok();
+                let mut tape = Tape::default();
+                for task in Task::ALL {
+                    // One batched forward per task over every herder of every slot.
+                    let mut rows = Vec::new();
+                    let mut input = Vec::new();
+                    for (i, s) in self.slots.iter().enumerate() {
+                        if s.draw.task == task {
+                            for (h, f) in s.features.iter().enumerate() {
+                                rows.push((i, h));
+                                input.extend_from_slice(f);
+                            }
+                        }
+                    }
+                    if rows.is_empty() {
+                        continue;
+                    }
+                    actor.forward(task.index(), &input, rows.len(), &mut tape);
+                    for (k, &(i, h)) in rows.iter().enumerate() {
+                        let mut a = [0.0; 3];
+                        for (j, v) in a.iter_mut().enumerate() {
+                            let n = noise.map_or(0.0, |d| d.sample(&mut self.rng));
+                            *v = (tape.output()[k * 3 + j] + n).clamp(-1.0, 1.0);
+                        }
+                        out[i][h] = a;
+                    }
+                }
+                out
+            }
+            Controller::Baseline(driving, collecting) => {
+                let mut velocities = Vec::new();
+                self.slots
+                    .iter_mut()
+                    .map(|s| {
+                        let method = match s.draw.task {
+                            Task::Driving => driving,
+                            Task::Collecting => collecting,
+                        };
+                        if s.rule_method != Some(method) || s.env.world().step == 0 {
+                            s.rule = RulePolicy::new(method);
+                            s.rule.reset(s.env.observation(), s.env.info().seed);
+                            s.rule_method = Some(method);
+                        }
+                        act_all(&mut s.rule, s.env.observation(), &mut velocities);
+                        velocities
+                            .iter()
+                            .enumerate()
+                            .map(|(h, v)| {
+                                s.frames[h].map_or([0.0; 3], |f| {
+                                    f.world_to_action([v[0] as f32, v[1] as f32, v[2] as f32])
+                                })
+                            })
+                            .collect()
+                    })
+                    .collect()
+            }
+        }
+    }
+}
+
+/// The curriculum's scenario draw at `progress` (a fraction of the DDPG phase).
+pub fn draw_from_stage(
+    config: &TrainConfig,
+    progress: f64,
+    rng: &mut ChaCha8Rng,
+    task: Task,
+) -> Draw {
+    let stage = config.stage_at(progress);
+    Draw {
+        task,
+        targets: stage.targets[rng.random_range(0..stage.targets.len())],
+        herders: stage.herders[rng.random_range(0..stage.herders.len())],
+    }
+}
+
+/// A draw from any stage at random: the warm start's demonstrations cover the whole curriculum.
+pub fn draw_from_all_stages(config: &TrainConfig, rng: &mut ChaCha8Rng, task: Task) -> Draw {
+    let stages = &config.curriculum.stages;
+    let stage = &stages[rng.random_range(0..stages.len())];
+    Draw {
+        task,
+        targets: stage.targets[rng.random_range(0..stage.targets.len())],
+        herders: stage.herders[rng.random_range(0..stage.herders.len())],
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::SeedableRng;
+
+    #[test]
+    fn suicide_no_longer_pays_under_the_learner_reward() {
+        // Leaving on step 1 must be worse than idling for the whole episode (DESIGN §2).
+        let config = TrainConfig::default();
+        let draw = Draw {
+            task: Task::Driving,
+            targets: 16,
+            herders: 4,
+        };
+        let s = training_scenario(draw, 600, false, &config.reward, 0.99);
+        let cost = step_cost(&s, config.reward.flight_scale);
+        let gamma = 0.99_f64;
+        // Idle: every step costs k0 k3 |r3| N (the targets barely move), discounted.
+        let idle_per_step = -s.reward.k0 * s.reward.k3 * s.reward.r3.abs() * 16.0 / cost;
+        let idle: f64 = (0..600).map(|t| gamma.powi(t) * idle_per_step).sum();
+        // Fly one herder out of the arena: the first step ends the episode.
+        let mut env = Env::new(s.clone()).expect("scenario");
+        env.reset(3);
+        let mut actions = vec![[0.0; 3]; 4];
+        let mut leave = 0.0;
+        let mut discount = 1.0;
+        let out = loop {
+            let h = env.world().herders[0];
+            actions[0] = [if h[0] < 250.0 { -5.0 } else { 5.0 }, 0.0, 0.0];
+            let out = env.step(&actions).expect("step");
+            leave += discount * f64::from(learner_reward(&out, &config.reward, cost));
+            discount *= gamma;
+            if out.terminated || out.truncated {
+                break out;
+            }
+        };
+        assert!(out.left_area);
+        assert!(
+            leave < idle,
+            "leaving ({leave}) must cost more than idling ({idle})"
+        );
+    }
+
+    #[test]
+    fn rollouts_fill_both_tasks_buffers_with_one_transition_per_herder() {
+        let mut config = TrainConfig::default();
+        config.training.episode_step_limit = 5;
+        let mut rng = ChaCha8Rng::seed_from_u64(1);
+        let actor = MultiTaskMlp::new(2, FEATURES, 16, 1, 3, crate::nn::Activation::Tanh, &mut rng);
+        let fixed = |_: &mut ChaCha8Rng, task| Draw {
+            task,
+            targets: 4,
+            herders: 3,
+        };
+        let mut draw = fixed;
+        let mut rollouts =
+            Rollouts::new(2, &config, ChaCha8Rng::seed_from_u64(2), &mut draw).expect("envs");
+        let mut replay: Vec<ReplayBuffer> = (0..2)
+            .map(|_| ReplayBuffer::new(FEATURES, 3, 100))
+            .collect();
+        let mut episodes = Vec::new();
+        for _ in 0..5 {
+            episodes.extend(
+                rollouts
+                    .step(
+                        &Controller::Actor(&actor, 0.1),
+                        &mut replay,
+                        None,
+                        &mut draw,
+                    )
+                    .expect("step"),
+            );
+        }
+        assert_eq!(replay[0].len(), 15);
+        assert_eq!(replay[1].len(), 15);
+        assert_eq!(episodes.len(), 2, "both episodes truncated at 5 steps");
+        let mut demos: Vec<ReplayBuffer> = (0..2)
+            .map(|_| ReplayBuffer::new(FEATURES, 3, 100))
+            .collect();
+        rollouts
+            .step(
+                &Controller::Baseline(Method::FarthestTargets, Method::FarthestTargets),
+                &mut replay,
+                Some(&mut demos),
+                &mut draw,
+            )
+            .expect("step");
+        assert_eq!(demos[0].len(), 3);
+    }
+}

@@ -1,0 +1,567 @@
+//! The training run, top to bottom:
+//!
+//! 1. **Warm start** (switchable): roll out the rule-based baselines over every curriculum
+//!    stage, record each herder's `(features, action)` (the rule's velocity in the local frame,
+//!    normalised by the speed limit) and its transitions; regress the actor onto the rule's
+//!    actions (behaviour cloning); evaluate the cloned actor with critic-only TD updates on
+//!    those transitions so the critic starts out knowing the rule's values.
+//! 2. **MTDDPG** fine-tuning: environments of both tasks stepped together with Gaussian
+//!    exploration, per-task replay, one minibatch per task per update, N and M drawn from the
+//!    curriculum stage in force.
+//! 3. **Evaluation** on held-out seeds every `eval.every_updates` updates (and after the warm
+//!    start); the best actor by success rate, then time, is kept in `best.safetensors`.
+//!
+//! Output in `output_dir`: `last.safetensors` (every `checkpoint_every_s` seconds and at the
+//! end, for `--resume`), `best.safetensors`, `log.csv`, `curve.png`.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use skyherd_model::Task;
+use skyherd_onboard::obs::FEATURES;
+use skyherd_sim::EnvError;
+use skyherd_sim::baseline::Method;
+use thiserror::Error;
+
+use crate::checkpoint::{self, Checkpoint, CheckpointError, Progress};
+use crate::config::TrainConfig;
+use crate::ddpg::{ACTION_DIM, Agent};
+use crate::eval::{EvalRow, EvalScenario, better, evaluate_flat, score};
+use crate::nn::{Adam, AdamConfig};
+use crate::policy::ActorPolicy;
+use crate::replay::{Batch, ReplayBuffer};
+use crate::report::{CsvLog, LogRow, ReportError, plot_curve, read_log};
+use crate::rollout::{Controller, EpisodeStats, Rollouts, draw_from_all_stages, draw_from_stage};
+
+/// Why training stopped early.
+#[derive(Debug, Error)]
+pub enum TrainError {
+    /// The simulator refused a step or a scenario.
+    #[error("simulator: {0}")]
+    Env(#[from] EnvError),
+    /// A checkpoint could not be written or read.
+    #[error(transparent)]
+    Checkpoint(#[from] CheckpointError),
+    /// The log or plot could not be written.
+    #[error(transparent)]
+    Report(#[from] ReportError),
+    /// The thread pool could not be built.
+    #[error("thread pool: {0}")]
+    Threads(String),
+}
+
+/// What the caller hears about while training runs (a progress bar, a quiet test).
+pub trait Observer {
+    /// A phase started; `total` units of work are expected.
+    fn phase(&mut self, name: &str, total: u64);
+    /// `done` units of the current phase are finished; `message` says how it goes.
+    fn progress(&mut self, done: u64, message: &str);
+    /// A free-form line.
+    fn note(&mut self, line: &str);
+}
+
+/// An observer that ignores everything.
+pub struct Quiet;
+
+impl Observer for Quiet {
+    fn phase(&mut self, _: &str, _: u64) {}
+    fn progress(&mut self, _: u64, _: &str) {}
+    fn note(&mut self, _: &str) {}
+}
+
+/// How a run ended.
+#[derive(Clone, Debug)]
+pub struct TrainOutcome {
+    /// Counters at the end.
+    pub progress: Progress,
+    /// Where the best checkpoint is.
+    pub best_checkpoint: PathBuf,
+    /// Where the last checkpoint is.
+    pub last_checkpoint: PathBuf,
+    /// The last evaluation.
+    pub last_eval: Vec<EvalRow>,
+    /// Mean seconds per DDPG update (NaN when none ran).
+    pub seconds_per_update: f64,
+}
+
+/// Running means over the most recent training episodes.
+struct Recent {
+    window: Vec<EpisodeStats>,
+}
+
+impl Recent {
+    fn push(&mut self, e: &[EpisodeStats]) {
+        self.window.extend_from_slice(e);
+        let excess = self.window.len().saturating_sub(100);
+        self.window.drain(..excess);
+    }
+    fn means(&self) -> (f64, f64) {
+        if self.window.is_empty() {
+            return (f64::NAN, f64::NAN);
+        }
+        let n = self.window.len() as f64;
+        (
+            self.window.iter().map(|e| e.learner_return).sum::<f64>() / n,
+            self.window.iter().filter(|e| e.success).count() as f64 / n,
+        )
+    }
+}
+
+fn sample_per_task(
+    buffers: &[ReplayBuffer],
+    batch_size: usize,
+    rng: &mut ChaCha8Rng,
+    out: &mut [Batch],
+) {
+    let per_task = (batch_size / buffers.len()).max(1);
+    for (b, buf) in out.iter_mut().zip(buffers) {
+        buf.sample(per_task, rng, b);
+    }
+}
+
+fn new_buffers(capacity: usize) -> Vec<ReplayBuffer> {
+    Task::ALL
+        .iter()
+        .map(|_| ReplayBuffer::new(FEATURES, ACTION_DIM, capacity))
+        .collect()
+}
+
+/// The trainer's state between phases.
+struct Run<'a> {
+    config: &'a TrainConfig,
+    agent: Agent,
+    progress: Progress,
+    rng: ChaCha8Rng,
+    replay: Vec<ReplayBuffer>,
+    demos: Vec<ReplayBuffer>,
+    log: CsvLog,
+    started: Instant,
+    wall_offset: f64,
+    eval_scenarios: Vec<EvalScenario>,
+    last_eval: Vec<EvalRow>,
+}
+
+impl Run<'_> {
+    fn wall(&self) -> f64 {
+        self.wall_offset + self.started.elapsed().as_secs_f64()
+    }
+
+    fn dir(&self) -> PathBuf {
+        self.config.output_dir.clone()
+    }
+
+    fn checkpoint(&self) -> Checkpoint {
+        let mut progress = self.progress;
+        progress.wall_time_s = self.wall();
+        Checkpoint {
+            agent: self.agent.clone(),
+            progress,
+            config: self.config.clone(),
+        }
+    }
+
+    fn save_last(&self) -> Result<(), TrainError> {
+        checkpoint::save(&self.dir().join("last.safetensors"), &self.checkpoint())?;
+        Ok(())
+    }
+
+    /// Evaluates the float actor on the held-out seeds; keeps it if it is the best so far.
+    fn evaluate(&mut self, observer: &mut dyn Observer) -> Result<(), TrainError> {
+        let e = &self.config.eval;
+        let actor = &self.agent.actor;
+        let rows = evaluate_flat(&self.eval_scenarios, e.episodes, e.seed_base, || {
+            ActorPolicy::new(actor)
+        })?;
+        let s = score(&rows);
+        let best = (self.progress.best_success, self.progress.best_time_ratio);
+        let improved = !self.dir().join("best.safetensors").exists() || better(s, best);
+        if improved {
+            self.progress.best_success = s.0;
+            self.progress.best_time_ratio = s.1;
+            checkpoint::save(&self.dir().join("best.safetensors"), &self.checkpoint())?;
+        }
+        observer.note(&format!(
+            "eval at {} env steps / {} updates: success {:.1}%, time {:.2}x lower bound{}",
+            self.progress.env_steps,
+            self.agent.updates,
+            100.0 * s.0,
+            s.1,
+            if improved { " (new best)" } else { "" }
+        ));
+        self.log.write(&LogRow {
+            phase: 2,
+            wall_s: self.wall(),
+            env_steps: self.progress.env_steps,
+            updates: self.agent.updates,
+            episodes: self.progress.episodes,
+            recent_return: f64::NAN,
+            recent_success: f64::NAN,
+            critic_loss: f64::NAN,
+            actor_loss: f64::NAN,
+            q_mean: f64::NAN,
+            eval_success: s.0,
+            eval_time_ratio: s.1,
+        })?;
+        self.last_eval = rows;
+        Ok(())
+    }
+
+    fn warm_start(&mut self, observer: &mut dyn Observer) -> Result<(), TrainError> {
+        let w = &self.config.warm_start;
+        let config = self.config;
+        // 1a. Demonstrations from every curriculum stage.
+        let (ret, succ) = self.record_demonstrations(observer)?;
+
+        // 1b. Behaviour cloning.
+        observer.phase("imitation", w.imitation_updates as u64);
+        let ddpg_optimizer = self.agent.actor_optimizer.clone();
+        self.agent.actor_optimizer = Adam::new(
+            AdamConfig {
+                learning_rate: w.imitation_learning_rate,
+                ..AdamConfig::default()
+            },
+            self.agent.actor.layers(),
+        );
+        let mut batches = vec![Batch::default(); Task::COUNT];
+        let mut loss_avg = 0.0;
+        for u in 0..w.imitation_updates {
+            sample_per_task(
+                &self.demos,
+                config.ddpg.batch_size,
+                &mut self.rng,
+                &mut batches,
+            );
+            let loss = self.agent.imitation_step(&batches);
+            loss_avg = if u == 0 {
+                loss
+            } else {
+                0.99 * loss_avg + 0.01 * loss
+            };
+            if u % 500 == 0 || u + 1 == w.imitation_updates {
+                observer.progress(u as u64 + 1, &format!("imitation loss {loss_avg:.4}"));
+                self.log.write(&LogRow {
+                    phase: 0,
+                    wall_s: self.wall(),
+                    updates: u as u64,
+                    recent_return: ret,
+                    recent_success: succ,
+                    critic_loss: f64::NAN,
+                    actor_loss: f64::from(loss_avg),
+                    q_mean: f64::NAN,
+                    eval_success: f64::NAN,
+                    eval_time_ratio: f64::NAN,
+                    ..LogRow::default()
+                })?;
+            }
+        }
+        self.agent.actor_optimizer = ddpg_optimizer;
+        self.agent.sync_targets();
+
+        // 1c. Critic pretraining: evaluate the cloned policy on the demonstrations.
+        observer.phase("critic pretraining", w.critic_updates as u64);
+        for u in 0..w.critic_updates {
+            sample_per_task(
+                &self.replay,
+                config.ddpg.batch_size,
+                &mut self.rng,
+                &mut batches,
+            );
+            let stats = self.agent.evaluate_policy_step(&batches);
+            if u % 500 == 0 || u + 1 == w.critic_updates {
+                observer.progress(
+                    u as u64 + 1,
+                    &format!(
+                        "critic loss {:.4}, Q {:.2}",
+                        stats.critic_loss, stats.q_mean
+                    ),
+                );
+            }
+        }
+        self.agent.sync_targets();
+        self.agent.updates = 0;
+        self.progress.warm_start_done = true;
+        self.evaluate(observer)?;
+        self.save_last()
+    }
+
+    fn ddpg(&mut self, observer: &mut dyn Observer) -> Result<f64, TrainError> {
+        let config = self.config;
+        let t = &config.training;
+        let start_steps = self.progress.env_steps;
+        // Curriculum progress: steps or wall time, whichever is further along.
+        let started = self.started;
+        let wall_offset = self.wall_offset;
+        let fraction = move |steps: u64| {
+            let by_steps = steps as f64 / t.env_steps.max(1) as f64;
+            let wall = wall_offset + started.elapsed().as_secs_f64();
+            by_steps.max(wall / t.wall_clock_limit_s.max(1.0)).min(1.0)
+        };
+        let draw_at = |progress: f64| {
+            move |rng: &mut ChaCha8Rng, task| draw_from_stage(config, progress, rng, task)
+        };
+        let rollout_rng = ChaCha8Rng::seed_from_u64(
+            config
+                .seed
+                .wrapping_add(2)
+                .wrapping_add(start_steps.wrapping_mul(0x9E37_79B9)),
+        );
+        let mut rollouts = Rollouts::new(
+            t.envs,
+            config,
+            rollout_rng,
+            &mut draw_at(fraction(start_steps)),
+        )?;
+        observer.phase("MTDDPG", t.env_steps);
+        let mut batches = vec![Batch::default(); Task::COUNT];
+        let mut demo_batches = vec![Batch::default(); Task::COUNT];
+        let mut recent = Recent { window: Vec::new() };
+        let mut updates_owed = 0.0_f64;
+        let mut last_checkpoint = Instant::now();
+        let mut last_log = Instant::now();
+        let mut update_time = 0.0_f64;
+        let mut update_count = 0u64;
+        let mut stats = crate::ddpg::UpdateStats::default();
+        let mut next_eval = self.agent.updates + config.eval.every_updates;
+        let imitation_weight = if config.warm_start.enabled {
+            config.warm_start.imitation_weight
+        } else {
+            0.0
+        };
+        while self.progress.env_steps < t.env_steps && self.wall() < t.wall_clock_limit_s {
+            let controller = Controller::Actor(&self.agent.actor, config.ddpg.exploration_noise);
+            let before = rollouts.env_steps;
+            let finished = rollouts.step(
+                &controller,
+                &mut self.replay,
+                None,
+                &mut draw_at(fraction(self.progress.env_steps)),
+            )?;
+            let stepped = rollouts.env_steps - before;
+            self.progress.env_steps += stepped;
+            self.progress.episodes += finished.len() as u64;
+            recent.push(&finished);
+
+            let stored: u64 = self.replay.iter().map(|b| b.len() as u64).sum();
+            if stored >= t.learning_starts {
+                updates_owed += stepped as f64 * t.updates_per_env_step;
+                while updates_owed >= 1.0 {
+                    updates_owed -= 1.0;
+                    let tick = Instant::now();
+                    sample_per_task(
+                        &self.replay,
+                        config.ddpg.batch_size,
+                        &mut self.rng,
+                        &mut batches,
+                    );
+                    if imitation_weight > 0.0 {
+                        sample_per_task(
+                            &self.demos,
+                            config.ddpg.batch_size,
+                            &mut self.rng,
+                            &mut demo_batches,
+                        );
+                    }
+                    stats =
+                        self.agent
+                            .update_with_imitation(&batches, &demo_batches, imitation_weight);
+                    update_time += tick.elapsed().as_secs_f64();
+                    update_count += 1;
+                }
+            }
+
+            if last_log.elapsed().as_secs_f64() >= 5.0 {
+                last_log = Instant::now();
+                let (ret, succ) = recent.means();
+                let n = config.stage_at(fraction(self.progress.env_steps));
+                observer.progress(
+                    self.progress.env_steps - start_steps.min(self.progress.env_steps),
+                    &format!(
+                        "succ {:.0}% ret {ret:.1} critic {:.3} Q {:.1} N {:?} {:.1} ms/upd",
+                        100.0 * succ,
+                        stats.critic_loss,
+                        stats.q_mean,
+                        n.targets,
+                        1e3 * update_time / update_count.max(1) as f64
+                    ),
+                );
+                self.log.write(&LogRow {
+                    phase: 1,
+                    wall_s: self.wall(),
+                    env_steps: self.progress.env_steps,
+                    updates: self.agent.updates,
+                    episodes: self.progress.episodes,
+                    recent_return: ret,
+                    recent_success: succ,
+                    critic_loss: f64::from(stats.critic_loss),
+                    actor_loss: f64::from(stats.actor_loss),
+                    q_mean: f64::from(stats.q_mean),
+                    eval_success: f64::NAN,
+                    eval_time_ratio: f64::NAN,
+                })?;
+            }
+            if self.agent.updates >= next_eval {
+                next_eval = self.agent.updates + config.eval.every_updates;
+                self.evaluate(observer)?;
+            }
+            if last_checkpoint.elapsed().as_secs_f64() >= t.checkpoint_every_s {
+                last_checkpoint = Instant::now();
+                self.save_last()?;
+                let _ = plot_curve(
+                    &read_log(&self.dir().join("log.csv"))?,
+                    &self.dir().join("curve.png"),
+                );
+            }
+        }
+        Ok(if update_count == 0 {
+            f64::NAN
+        } else {
+            update_time / update_count as f64
+        })
+    }
+}
+
+/// Runs (or resumes) a training run as configured; see the module docs.
+pub fn train(
+    config: &TrainConfig,
+    resume: Option<Checkpoint>,
+    observer: &mut (dyn Observer + Send),
+) -> Result<TrainOutcome, TrainError> {
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(config.training.threads)
+        .build()
+        .map_err(|e| TrainError::Threads(e.to_string()))?;
+    pool.install(|| train_in_pool(config, resume, observer))
+}
+
+fn train_in_pool(
+    config: &TrainConfig,
+    resume: Option<Checkpoint>,
+    observer: &mut dyn Observer,
+) -> Result<TrainOutcome, TrainError> {
+    let dir = config.output_dir.clone();
+    std::fs::create_dir_all(&dir).map_err(ReportError::from)?;
+    let mut init_rng = ChaCha8Rng::seed_from_u64(config.seed);
+    let (agent, progress) = match resume {
+        Some(c) => (c.agent, c.progress),
+        None => (
+            Agent::new(
+                FEATURES,
+                Task::COUNT,
+                config.network,
+                config.ddpg,
+                &mut init_rng,
+            ),
+            Progress::default(),
+        ),
+    };
+    // A resumed run continues from a stream of its own, derived from where it stopped.
+    let rng = ChaCha8Rng::seed_from_u64(
+        config
+            .seed
+            .wrapping_mul(31)
+            .wrapping_add(progress.env_steps)
+            .wrapping_add(3),
+    );
+    let eval_scenarios = config
+        .eval
+        .scenarios
+        .iter()
+        .filter_map(EvalScenario::from_triple)
+        .collect();
+    let mut run = Run {
+        config,
+        agent,
+        progress,
+        rng,
+        replay: new_buffers(config.training.replay_capacity),
+        demos: new_buffers(config.training.replay_capacity),
+        log: CsvLog::open(&dir.join("log.csv"))?,
+        started: Instant::now(),
+        wall_offset: progress.wall_time_s,
+        eval_scenarios,
+        last_eval: Vec::new(),
+    };
+    if config.warm_start.enabled && !run.progress.warm_start_done {
+        run.warm_start(observer)?;
+    } else if config.warm_start.enabled && config.warm_start.imitation_weight > 0.0 {
+        // A resumed run needs demonstrations again for the imitation pull.
+        observer.note("resume: re-recording demonstrations for the imitation term");
+        run.record_demonstrations(observer)?;
+    }
+    let seconds_per_update = run.ddpg(observer)?;
+    run.evaluate(observer)?;
+    run.save_last()?;
+    let rows = read_log(&dir.join("log.csv"))?;
+    plot_curve(&rows, &dir.join("curve.png"))?;
+    let mut progress = run.progress;
+    progress.wall_time_s = run.wall();
+    Ok(TrainOutcome {
+        progress,
+        best_checkpoint: dir.join("best.safetensors"),
+        last_checkpoint: dir.join("last.safetensors"),
+        last_eval: run.last_eval,
+        seconds_per_update,
+    })
+}
+
+impl Run<'_> {
+    /// Rolls out the baselines over every curriculum stage, filling the demonstration buffers
+    /// and the replay buffers; returns the baselines' mean learner return and success rate.
+    fn record_demonstrations(
+        &mut self,
+        observer: &mut dyn Observer,
+    ) -> Result<(f64, f64), TrainError> {
+        let w = &self.config.warm_start;
+        let config = self.config;
+        let methods = (
+            w.driving_baseline
+                .parse::<Method>()
+                .unwrap_or(Method::FarthestTargets),
+            w.collecting_baseline
+                .parse::<Method>()
+                .unwrap_or(Method::FarthestTargets),
+        );
+        let mut draw = |rng: &mut ChaCha8Rng, task| draw_from_all_stages(config, rng, task);
+        let rollout_rng = ChaCha8Rng::seed_from_u64(config.seed.wrapping_add(1));
+        let mut rollouts = Rollouts::new(config.training.envs, config, rollout_rng, &mut draw)?;
+        let mut done = [0usize; 2];
+        observer.phase("demonstrations", (w.episodes_per_task * 2) as u64);
+        let controller = Controller::Baseline(methods.0, methods.1);
+        let mut recent = Recent { window: Vec::new() };
+        while done.iter().any(|&d| d < w.episodes_per_task) {
+            let finished = rollouts.step(
+                &controller,
+                &mut self.replay,
+                Some(&mut self.demos),
+                &mut draw,
+            )?;
+            for e in &finished {
+                done[e.draw.task.index()] += 1;
+            }
+            recent.push(&finished);
+            let total = done
+                .iter()
+                .map(|&d| d.min(w.episodes_per_task))
+                .sum::<usize>();
+            observer.progress(
+                total as u64,
+                &format!(
+                    "{} + {} transitions",
+                    self.demos[0].len(),
+                    self.demos[1].len()
+                ),
+            );
+        }
+        let (ret, succ) = recent.means();
+        observer.note(&format!(
+            "demonstrations: {} driving + {} collecting transitions, baseline success {:.0}%, mean return {:.1}",
+            self.demos[0].len(),
+            self.demos[1].len(),
+            100.0 * succ,
+            ret
+        ));
+        Ok((ret, succ))
+    }
+}

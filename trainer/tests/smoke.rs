@@ -1,0 +1,91 @@
+//! A seconds-long training run through every phase (demonstrations, imitation, critic
+//! pretraining, MTDDPG, evaluation, checkpoints, log, plot), then `--resume`, then export.
+
+use skyherd_model::Task;
+use skyherd_trainer::checkpoint;
+use skyherd_trainer::config::TrainConfig;
+use skyherd_trainer::eval::EvalScenario;
+use skyherd_trainer::export::{export, parity, record_observations};
+use skyherd_trainer::report::read_log;
+use skyherd_trainer::train::{Quiet, train};
+
+fn tiny_config(dir: &std::path::Path) -> TrainConfig {
+    TrainConfig::from_toml_str(&format!(
+        r#"
+        seed = 11
+        output_dir = "{}"
+        [network]
+        hidden = 16
+        [training]
+        env_steps = 300
+        envs = 2
+        episode_step_limit = 40
+        learning_starts = 50
+        wall_clock_limit_s = 60.0
+        [curriculum]
+        stages = [{{ from_progress = 0.0, targets = [2, 4], herders = [1, 2] }}]
+        [warm_start]
+        episodes_per_task = 1
+        imitation_updates = 300
+        critic_updates = 50
+        [eval]
+        every_updates = 100
+        episodes = 1
+        scenarios = [["driving", 4, 2], ["collecting", 4, 2]]
+        "#,
+        dir.display()
+    ))
+    .expect("tiny config")
+}
+
+#[test]
+fn tiny_training_runs_resumes_and_exports() {
+    let dir = std::env::temp_dir().join(format!("skyherd-smoke-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let mut config = tiny_config(&dir);
+
+    let first = train(&config, None, &mut Quiet).expect("training runs");
+    assert!(first.progress.warm_start_done);
+    assert!(first.progress.env_steps >= 300, "{:?}", first.progress);
+    assert!(first.seconds_per_update.is_finite());
+    for file in [
+        "best.safetensors",
+        "last.safetensors",
+        "log.csv",
+        "curve.png",
+    ] {
+        assert!(dir.join(file).exists(), "{file} written");
+    }
+    let log = read_log(&dir.join("log.csv")).expect("log");
+    assert!(log.iter().any(|r| r.phase == 0), "imitation rows");
+    assert!(log.iter().any(|r| r.phase == 2), "evaluation rows");
+    // Imitation reduces its loss.
+    let imitation: Vec<f64> = log
+        .iter()
+        .filter(|r| r.phase == 0)
+        .map(|r| r.actor_loss)
+        .collect();
+    assert!(imitation.last() < imitation.first(), "{imitation:?}");
+
+    // Resume: the counters continue from the checkpoint, the warm start is not repeated.
+    let last = checkpoint::load(&dir.join("last.safetensors")).expect("last checkpoint");
+    let updates_before = last.agent.updates;
+    config.training.env_steps = 500;
+    let second = train(&config, Some(last), &mut Quiet).expect("resumed training runs");
+    assert!(second.progress.env_steps >= 500);
+    let resumed = checkpoint::load(&dir.join("last.safetensors")).expect("checkpoint");
+    assert!(resumed.agent.updates > updates_before);
+
+    // Export the best actor and compare the int8 actor with it on recorded observations.
+    let best = checkpoint::load(&dir.join("best.safetensors")).expect("best checkpoint");
+    let scenarios = [EvalScenario {
+        task: Task::Driving,
+        targets: 4,
+        herders: 2,
+    }];
+    let obs = record_observations(&best.agent.actor, &scenarios, 2, 7, 60, 1).expect("record");
+    let bytes = export(&best.agent.actor, 5.0, &obs).expect("export");
+    let p = parity(&best.agent.actor, &bytes, &obs).expect("parity");
+    assert!(p.rms_component < 0.05, "{p:?}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
