@@ -73,6 +73,10 @@ struct RunArgs {
     /// Speed limit, m/s [default: the model's].
     #[arg(long)]
     max_speed: Option<f32>,
+    /// Hold when the newest world snapshot is older than this, ms of the daemon's clock
+    /// (simulator time with --sim-clock).
+    #[arg(long, default_value_t = 1000)]
+    uplink_timeout_ms: u64,
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -104,6 +108,7 @@ fn run(args: RunArgs) -> Result<()> {
     let herder_index = args.herder_index.unwrap_or(usize::from(args.system_id) - 1);
     let mut config = CoreConfig::new(args.system_id, herder_index, flavour);
     config.max_speed = args.max_speed.unwrap_or(actor.max_speed());
+    config.uplink_timeout_ms = args.uplink_timeout_ms;
     if !(config.max_speed.is_finite() && config.max_speed > 0.0) {
         bail!(
             "--max-speed must be a positive number of m/s, got {}",
