@@ -205,7 +205,10 @@ impl Agent {
             return stats;
         }
         // 2. Actor and 3. targets, every `policy_frequency` critic updates.
-        if self.updates % u64::from(c.policy_frequency.max(1)) == 0 {
+        if self
+            .updates
+            .is_multiple_of(u64::from(c.policy_frequency.max(1)))
+        {
             stats.actor_loss = self.actor_step(batches, demos, imitation_weight);
             self.target_actor.soft_update_from(&self.actor, c.tau);
             self.target_critic.soft_update_from(&self.critic, c.tau);

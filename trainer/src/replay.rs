@@ -137,7 +137,13 @@ mod tests {
         let mut b = ReplayBuffer::new(1, 1, 3);
         for k in 0..5 {
             let v = k as f32;
-            b.push(&[v], &[-v], 10.0 * v, &[v + 0.5], k % 2 == 0);
+            b.push(
+                &[v],
+                &[-v],
+                10.0 * v,
+                &[v + 0.5],
+                (k as usize).is_multiple_of(2),
+            );
         }
         assert_eq!(b.len(), 3);
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(9);
@@ -149,7 +155,7 @@ mod tests {
             assert_eq!(batch.actions[r], -v);
             assert_eq!(batch.rewards[r], 10.0 * v);
             assert_eq!(batch.next_obs[r], v + 0.5);
-            let terminated = (v as usize) % 2 == 0;
+            let terminated = (v as usize).is_multiple_of(2);
             assert_eq!(batch.continues[r], if terminated { 0.0 } else { 1.0 });
         }
     }

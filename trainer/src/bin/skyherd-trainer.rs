@@ -105,12 +105,16 @@ impl Observer for Bar {
         if let Some(b) = &self.bar {
             b.set_position(done);
             b.set_message(message.to_owned());
+            // Without a terminal (nohup) the bar is hidden: log the line instead.
+            if b.is_hidden() {
+                eprintln!("[{}] {done}: {message}", b.prefix());
+            }
         }
     }
     fn note(&mut self, line: &str) {
         match &self.bar {
-            Some(b) => b.println(line),
-            None => eprintln!("{line}"),
+            Some(b) if !b.is_hidden() => b.println(line),
+            _ => eprintln!("{line}"),
         }
     }
 }
