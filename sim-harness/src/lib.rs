@@ -38,6 +38,7 @@ pub mod noise;
 pub mod policy;
 pub mod reward;
 pub mod scenario;
+pub mod sitl;
 pub mod task;
 //pub mod trace;
 pub mod world;
