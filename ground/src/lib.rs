@@ -11,3 +11,4 @@
 pub mod link;
 pub mod tlog;
 pub mod tracking;
+pub mod uplink;
