@@ -41,3 +41,5 @@ pub use sensor::{DetectionSensor, SensorConfig, SensorError};
 
 #[cfg(test)]
 mod loopback_tests;
+#[cfg(test)]
+mod pymavlink_tests;
