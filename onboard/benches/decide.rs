@@ -106,6 +106,22 @@ fn decide(actor: &Actor<'_>, input: &ObsInput<'_>) -> [f32; 3] {
     }
 }
 
+/// Nanoseconds this thread has spent on a CPU (Linux `schedstat`), so that the per-decision
+/// figure printed beside criterion's wall-clock one is not inflated by a loaded machine.
+fn thread_cpu_ns() -> Option<u64> {
+    let stat = std::fs::read_to_string("/proc/thread-self/schedstat").ok()?;
+    stat.split_whitespace().next()?.parse().ok()
+}
+
+fn cpu_time_per_call(mut f: impl FnMut()) -> Option<f64> {
+    const CALLS: u32 = 20_000;
+    let start = thread_cpu_ns()?;
+    for _ in 0..CALLS {
+        f();
+    }
+    Some((thread_cpu_ns()? - start) as f64 / CALLS as f64 / 1000.0)
+}
+
 fn bench(c: &mut Criterion) {
     let bytes = model();
     let actor = Actor::from_bytes(&bytes).unwrap();
@@ -120,6 +136,13 @@ fn bench(c: &mut Criterion) {
             }
             let allocations = ALLOCATIONS.load(Ordering::Relaxed) - before;
             assert_eq!(allocations, 0, "encode + infer allocated at N={n}, M={m}");
+            if let Some(us) = cpu_time_per_call(|| {
+                black_box(decide(&actor, black_box(&input(&w))));
+            }) {
+                println!(
+                    "thread CPU time per decision, N={n} M={m}: {us:.2} us (zero heap allocations)"
+                );
+            }
             group.bench_with_input(
                 BenchmarkId::new(format!("encode+infer/M={m}"), n),
                 &w,
@@ -133,6 +156,11 @@ fn bench(c: &mut Criterion) {
     let w = world(1024, 4);
     let mut features = [0.0; FEATURES];
     encode(&input(&w), &mut features).unwrap();
+    if let Some(us) = cpu_time_per_call(|| {
+        black_box(actor.infer(Task::Driving, black_box(&features)));
+    }) {
+        println!("thread CPU time per infer (H=64, S=2): {us:.2} us");
+    }
     group.bench_function("infer only (H=64, S=2)", |b| {
         b.iter(|| actor.infer(Task::Driving, black_box(&features)))
     });
