@@ -87,6 +87,9 @@ pub enum LinkError {
     /// No peer address is known yet to send to (udpin before any vehicle spoke).
     #[error("no peer known for system {0}")]
     NoPeer(u8),
+    /// [`GroundLink::run_command`] was given something other than a COMMAND_LONG.
+    #[error("expected a COMMAND_LONG, got {0}")]
+    NotACommand(&'static str),
     /// A blocking command got no COMMAND_ACK in time.
     #[error("command {command} to system {system_id} not acknowledged within {timeout:?}")]
     CommandTimeout {
@@ -517,9 +520,9 @@ impl GroundLink {
         timeout: Duration,
     ) -> Result<MavResult, LinkError> {
         let MavMessage::COMMAND_LONG(c) = message else {
-            return Err(LinkError::BadAddress(
-                "run_command needs a COMMAND_LONG".into(),
-            ));
+            return Err(LinkError::NotACommand(mavlink::Message::message_name(
+                message,
+            )));
         };
         let command = c.command;
         let start = Instant::now();
