@@ -8,7 +8,9 @@
 //!
 //! Frames: the tracker works in the simulator frame (x east, y north, metres); MAVLink
 //! positions are LOCAL_NED and are converted only through `skyherd_onboard::frame`.
+pub mod detections;
 pub mod link;
+pub mod mission;
 pub mod tlog;
 pub mod tracking;
 pub mod uplink;

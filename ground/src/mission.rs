@@ -306,7 +306,13 @@ mod tests {
     use skyherd_onboard::Task;
 
     fn plan() -> MissionPlan {
-        let mut p = MissionPlan::new(Task::Driving, [8.0, 8.0], 1.5, [10.0, 10.0, 3.0], vec![1, 2]);
+        let mut p = MissionPlan::new(
+            Task::Driving,
+            [8.0, 8.0],
+            1.5,
+            [10.0, 10.0, 3.0],
+            vec![1, 2],
+        );
         p.expected_targets = 2;
         p
     }
@@ -321,7 +327,10 @@ mod tests {
 
     fn started() -> MissionControl {
         let mut m = MissionControl::new(plan());
-        let d = [drone(1, [1.0, 1.0, 1.0], 0.0), drone(2, [2.0, 1.0, 1.0], 0.0)];
+        let d = [
+            drone(1, [1.0, 1.0, 1.0], 0.0),
+            drone(2, [2.0, 1.0, 1.0], 0.0),
+        ];
         assert_eq!(m.update(0.0, &d, &[]), Some(MissionAction::Start));
         m
     }
@@ -345,7 +354,10 @@ mod tests {
     #[test]
     fn completes_after_the_targets_settle_in_the_goal() {
         let mut m = started();
-        let d = [drone(1, [1.0, 1.0, 1.0], 1.0), drone(2, [2.0, 1.0, 1.0], 1.0)];
+        let d = [
+            drone(1, [1.0, 1.0, 1.0], 1.0),
+            drone(2, [2.0, 1.0, 1.0], 1.0),
+        ];
         let inside = [[8.0, 8.5], [7.5, 8.0]];
         // One target is not enough when two are expected.
         assert_eq!(m.update(1.0, &d, &inside[..1]), None);
@@ -359,13 +371,20 @@ mod tests {
                 at: 2.5
             }
         );
-        assert_eq!(m.update(3.0, &d, &inside), None, "an ended mission stays ended");
+        assert_eq!(
+            m.update(3.0, &d, &inside),
+            None,
+            "an ended mission stays ended"
+        );
     }
 
     #[test]
     fn a_target_leaving_the_goal_restarts_the_settle_clock() {
         let mut m = started();
-        let d = [drone(1, [1.0, 1.0, 1.0], 1.0), drone(2, [2.0, 1.0, 1.0], 1.0)];
+        let d = [
+            drone(1, [1.0, 1.0, 1.0], 1.0),
+            drone(2, [2.0, 1.0, 1.0], 1.0),
+        ];
         let inside = [[8.0, 8.5], [7.5, 8.0]];
         let outside = [[8.0, 8.5], [5.0, 5.0]];
         assert_eq!(m.update(1.0, &d, &inside), None);
@@ -378,7 +397,10 @@ mod tests {
     #[test]
     fn a_drone_outside_the_fence_aborts() {
         let mut m = started();
-        let d = [drone(1, [1.0, 1.0, 1.0], 1.0), drone(2, [11.0, 1.0, 1.0], 1.0)];
+        let d = [
+            drone(1, [1.0, 1.0, 1.0], 1.0),
+            drone(2, [11.0, 1.0, 1.0], 1.0),
+        ];
         assert_eq!(m.update(1.0, &d, &[]), Some(MissionAction::Hold));
         assert_eq!(
             m.phase(),
@@ -392,11 +414,17 @@ mod tests {
     #[test]
     fn one_lost_drone_goes_on_all_lost_aborts() {
         let mut m = started();
-        let d = [drone(1, [1.0, 1.0, 1.0], 5.0), drone(2, [2.0, 1.0, 1.0], 0.0)];
+        let d = [
+            drone(1, [1.0, 1.0, 1.0], 5.0),
+            drone(2, [2.0, 1.0, 1.0], 0.0),
+        ];
         assert_eq!(m.update(5.0, &d, &[]), None);
         assert_eq!(m.lost(), &[2]);
         assert!(matches!(m.phase(), Phase::Flying { .. }));
-        let d = [drone(1, [1.0, 1.0, 1.0], 5.0), drone(2, [2.0, 1.0, 1.0], 0.0)];
+        let d = [
+            drone(1, [1.0, 1.0, 1.0], 5.0),
+            drone(2, [2.0, 1.0, 1.0], 0.0),
+        ];
         assert_eq!(m.update(9.0, &d, &[]), Some(MissionAction::Hold));
         assert_eq!(
             m.phase(),
@@ -410,7 +438,10 @@ mod tests {
     #[test]
     fn the_time_limit_aborts_and_the_operator_can_abort() {
         let mut m = started();
-        let d = [drone(1, [1.0, 1.0, 1.0], 700.0), drone(2, [2.0, 1.0, 1.0], 700.0)];
+        let d = [
+            drone(1, [1.0, 1.0, 1.0], 700.0),
+            drone(2, [2.0, 1.0, 1.0], 700.0),
+        ];
         assert_eq!(m.update(700.0, &d, &[]), Some(MissionAction::Hold));
         assert!(matches!(
             m.phase(),
