@@ -182,7 +182,7 @@ impl Env {
             ..EpisodeInfo::default()
         };
         self.refresh_observation();
-        &self.observed
+        self.observation()
     }
 
     /// Starts an episode from a given state instead of a spawn (tests, curricula, replays).
@@ -211,10 +211,14 @@ impl Env {
             ..EpisodeInfo::default()
         };
         self.refresh_observation();
-        Ok(&self.observed)
+        Ok(self.observation())
     }
 
     fn refresh_observation(&mut self) {
+        if self.scenario.noise.sensing_std <= 0.0 {
+            // `observation()` hands out the true world; no copy needed.
+            return;
+        }
         sense(
             &self.world,
             &mut self.observed,
@@ -295,7 +299,11 @@ impl Env {
 
     /// What the herders sense: the world with sensing noise (the true world when it is off).
     pub fn observation(&self) -> &World {
-        &self.observed
+        if self.scenario.noise.sensing_std <= 0.0 {
+            &self.world
+        } else {
+            &self.observed
+        }
     }
 
     /// The true state.

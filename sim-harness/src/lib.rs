@@ -8,7 +8,7 @@
 //! * [`task`]: spawn rules, success/leave/step-limit termination, the time lower bound.
 //! * [`noise`]: seeded boids-parameter, sensing and actuation noise.
 //! * [`scenario`]: TOML scenarios with presets `paper-drive`, `paper-collect`, `indoor`.
-//! * [`env`]: [`Env`] (`reset(seed)`, `step(actions)`), episodes, and the batched [`BatchEnv`].
+//! * [`env`](mod@env): [`Env`] (`reset(seed)`, `step(actions)`), episodes, and the batched [`BatchEnv`].
 //! * [`policy`]: the per-herder [`Policy`] trait and [`policy::PolicyFactory`].
 //! * [`baseline`]: rule-based herders (Strömbom, control-tutor, Lama & di Bernardo, farthest
 //!   targets).
@@ -32,15 +32,15 @@
 
 pub mod baseline;
 pub mod env;
-//pub mod eval;
+pub mod eval;
 pub mod noise;
-//pub mod plot;
+pub mod plot;
 pub mod policy;
 pub mod reward;
 pub mod scenario;
 pub mod sitl;
 pub mod task;
-//pub mod trace;
+pub mod trace;
 pub mod world;
 
 pub use env::{BatchEnv, Env, EnvError, EpisodeInfo, EpisodeSummary, StepOutcome, run_episode};

@@ -2,7 +2,7 @@
 //!
 //! The paper fixes the arena, the goal radius (45 m) and the driving start radius (50 m); it is
 //! silent on the rest, so these are our choices (one default each, in the presets):
-//! * circles (goal, driving start) lie wholly inside the arena, `wall_margin` (25 m) clear of
+//! * circles (goal, driving start) lie wholly inside the arena, `wall_margin` (50 m) clear of
 //!   the walls, so that a flock spreading under separation does not start out of bounds;
 //! * driving: start and goal centres are at least `min_start_goal_distance` (150 m) apart,
 //!   targets uniform over the start disc;

@@ -377,25 +377,6 @@ fn move_herders(world: &mut World, actions: &[[f64; 3]]) -> Result<(), WorldErro
     Ok(())
 }
 
-/// Eq (5) for one target: herder repulsion with the 3-D distance (target at z = 0); the z of the
-/// result is dropped, so only x and y are returned.
-#[inline]
-fn herder_repulsion(target: [f64; 2], herders: &[[f64; 3]]) -> [f64; 2] {
-    let mut acc = [0.0, 0.0];
-    for h in herders {
-        let dx = target[0] - h[0];
-        let dy = target[1] - h[1];
-        let dz = -h[2];
-        let d2 = dx * dx + dy * dy + dz * dz;
-        if d2 > COINCIDENT_D2 {
-            let inv = 1.0 / (d2 * d2.sqrt());
-            acc[0] += dx * inv;
-            acc[1] += dy * inv;
-        }
-    }
-    acc
-}
-
 /// Reusable buffers for [`advance`]: the spatial grid and per-target accumulators.
 #[derive(Clone, Debug, Default)]
 pub struct StepScratch {
@@ -405,6 +386,7 @@ pub struct StepScratch {
     sorted_pos: Vec<[f64; 2]>,
     sorted_sep: Vec<[f64; 2]>,
     new_velocity: Vec<[f64; 2]>,
+    repulsion: Vec<[f64; 2]>,
 }
 
 impl StepScratch {
@@ -426,6 +408,7 @@ impl StepScratch {
             self.sorted_pos.resize(n, [0.0; 2]);
             self.sorted_sep.resize(n, [0.0; 2]);
             self.new_velocity.resize(n, [0.0; 2]);
+            self.repulsion.resize(n, [0.0; 2]);
         }
         let cells = Self::max_cells(n) + 1;
         if self.cell_start.len() < cells {
@@ -500,22 +483,30 @@ fn separation_grid(targets: &[[f64; 2]], range: f64, scratch: &mut StepScratch) 
     sorted_sep.fill([0.0, 0.0]);
 
     let range2 = range * range;
-    // Each pair once: within the cell (a < b), then the four "forward" neighbour cells.
-    let pair = |a: usize, b: usize, sorted_sep: &mut [[f64; 2]]| {
+    // Each pair once: within the cell (b > a), then the four "forward" neighbour cells. The sum
+    // for `a` stays in registers (`acc`); only the partners' sums go through memory.
+    let pairs = |a: usize, others: std::ops::Range<usize>, sorted_sep: &mut [[f64; 2]]| {
         let pa = sorted_pos[a];
-        let pb = sorted_pos[b];
-        let dx = pa[0] - pb[0];
-        let dy = pa[1] - pb[1];
-        let d2 = dx * dx + dy * dy;
-        if d2 <= range2 && d2 > COINCIDENT_D2 {
-            let inv = 1.0 / (d2 * d2.sqrt());
+        let mut acc = [0.0, 0.0];
+        for b in others {
+            let pb = sorted_pos[b];
+            let dx = pa[0] - pb[0];
+            let dy = pa[1] - pb[1];
+            let d2 = dx * dx + dy * dy;
+            let inv = if d2 <= range2 && d2 > COINCIDENT_D2 {
+                1.0 / (d2 * d2.sqrt())
+            } else {
+                0.0
+            };
             let fx = dx * inv;
             let fy = dy * inv;
-            sorted_sep[a][0] += fx;
-            sorted_sep[a][1] += fy;
+            acc[0] += fx;
+            acc[1] += fy;
             sorted_sep[b][0] -= fx;
             sorted_sep[b][1] -= fy;
         }
+        sorted_sep[a][0] += acc[0];
+        sorted_sep[a][1] += acc[1];
     };
     for cy in 0..ny {
         for cx in 0..nx {
@@ -524,29 +515,26 @@ fn separation_grid(targets: &[[f64; 2]], range: f64, scratch: &mut StepScratch) 
             if s == e {
                 continue;
             }
+            // Forward neighbours that exist: (+1, 0), (-1, +1), (0, +1), (+1, +1).
+            let right = cx + 1 < nx;
+            let up = cy + 1 < ny;
+            let span = |d: usize| cell_start[d] as usize..cell_start[d + 1] as usize;
             for a in s..e {
-                for b in a + 1..e {
-                    pair(a, b, sorted_sep);
+                pairs(a, a + 1..e, sorted_sep);
+                if right {
+                    pairs(a, span(c + 1), sorted_sep);
                 }
-            }
-            let neighbour = |ox: isize, oy: isize, sorted_sep: &mut [[f64; 2]]| {
-                let x = cx as isize + ox;
-                let y = cy as isize + oy;
-                if x < 0 || x >= nx as isize || y >= ny as isize {
-                    return;
-                }
-                let d = y as usize * nx + x as usize;
-                let (ds, de) = (cell_start[d] as usize, cell_start[d + 1] as usize);
-                for a in s..e {
-                    for b in ds..de {
-                        pair(a, b, sorted_sep);
+                if up {
+                    let above = c + nx;
+                    if cx > 0 {
+                        pairs(a, span(above - 1), sorted_sep);
+                    }
+                    pairs(a, span(above), sorted_sep);
+                    if right {
+                        pairs(a, span(above + 1), sorted_sep);
                     }
                 }
-            };
-            neighbour(1, 0, sorted_sep);
-            neighbour(-1, 1, sorted_sep);
-            neighbour(0, 1, sorted_sep);
-            neighbour(1, 1, sorted_sep);
+            }
         }
     }
     for slot in 0..n {
@@ -567,18 +555,35 @@ pub fn advance(
     separation_grid(&world.targets, world.params.separation_range, scratch);
     let (mean_v, mean_x) = means(&world.target_velocities, &world.targets);
     let p = world.params;
+    // Herder-major so that the inner loop runs over targets without branches and vectorises.
+    scratch.repulsion.clear();
+    scratch.repulsion.resize(n, [0.0, 0.0]);
+    for h in &world.herders {
+        let hz2 = h[2] * h[2];
+        for (t, acc) in world.targets.iter().zip(scratch.repulsion.iter_mut()) {
+            let dx = t[0] - h[0];
+            let dy = t[1] - h[1];
+            let d2 = dx * dx + dy * dy + hz2;
+            let inv = if d2 > COINCIDENT_D2 {
+                1.0 / (d2 * d2.sqrt())
+            } else {
+                0.0
+            };
+            acc[0] += dx * inv;
+            acc[1] += dy * inv;
+        }
+    }
     for i in 0..n {
         let x = world.targets[i];
         let sep = scratch.new_velocity[i];
-        scratch.new_velocity[i] = target_velocity(
-            &p,
-            world.limits.target,
-            x,
-            sep,
-            mean_v,
-            mean_x,
-            &world.herders,
-        );
+        let rep = scratch.repulsion[i];
+        let mut v = [0.0; 2];
+        for k in 0..2 {
+            let boids =
+                p.separation * sep[k] + p.alignment * mean_v[k] + p.cohesion * (mean_x[k] - x[k]);
+            v[k] = p.flock * boids + p.herder * rep[k];
+        }
+        scratch.new_velocity[i] = cap2(v, world.limits.target);
     }
     integrate_targets(world, &scratch.new_velocity);
     world.step += 1;
@@ -596,27 +601,6 @@ fn means(velocities: &[[f64; 2]], positions: &[[f64; 2]]) -> ([f64; 2], [f64; 2]
         sx[1] += x[1];
     }
     ([sv[0] / n, sv[1] / n], [sx[0] / n, sx[1] / n])
-}
-
-/// Eqs (1), (3), (4), (5), (6) for one target given its separation sum, then the speed cap.
-#[inline]
-fn target_velocity(
-    p: &BoidsParams,
-    max_speed: f64,
-    x: [f64; 2],
-    sep: [f64; 2],
-    mean_v: [f64; 2],
-    mean_x: [f64; 2],
-    herders: &[[f64; 3]],
-) -> [f64; 2] {
-    let rep = herder_repulsion(x, herders);
-    let mut v = [0.0; 2];
-    for k in 0..2 {
-        let boids =
-            p.separation * sep[k] + p.alignment * mean_v[k] + p.cohesion * (mean_x[k] - x[k]);
-        v[k] = p.flock * boids + p.herder * rep[k];
-    }
-    cap2(v, max_speed)
 }
 
 fn integrate_targets(world: &mut World, velocities: &[[f64; 2]]) {

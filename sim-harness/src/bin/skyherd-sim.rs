@@ -1,0 +1,386 @@
+//! `skyherd-sim`: run an episode, step a state, sweep the evaluation, draw the plots.
+//!
+//! ```text
+//! skyherd-sim run  --scenario paper-drive --policy strombom --seed 3 --out trace.jsonl
+//! skyherd-sim step --state state.json > next.json
+//! skyherd-sim eval --episodes 100 --out-dir docs/baselines
+//! skyherd-sim plot-trajectory --policy ctrl --targets 8 --herders 4 --out docs/baselines/fig4-ctrl
+//! ```
+
+use std::fs;
+use std::io::{BufWriter, Write};
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use anyhow::{Context, Result, anyhow, bail};
+use clap::{Parser, Subcommand};
+use indicatif::{ProgressBar, ProgressStyle};
+use skyherd_sim::baseline::Method;
+use skyherd_sim::eval::{ConfigResult, SweepSpec, run_sweep, to_csv, to_markdown};
+use skyherd_sim::task::parse_task;
+use skyherd_sim::trace::{TraceLine, step_state_json};
+use skyherd_sim::{Env, HerderCount, PolicyFactory, Scenario, World, plot, run_episode};
+
+#[derive(Parser)]
+#[command(
+    name = "skyherd-sim",
+    about = "The skyherd shepherding simulator",
+    version
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Run one episode and write every step's state as JSON Lines.
+    Run {
+        /// A preset (paper-drive, paper-collect, indoor) or a scenario TOML file.
+        #[arg(long, default_value = "paper-drive")]
+        scenario: String,
+        /// Policy: strombom, ctrl, lama, farthest.
+        #[arg(long, default_value = "strombom")]
+        policy: String,
+        /// Episode seed (default: the scenario's).
+        #[arg(long)]
+        seed: Option<u64>,
+        /// Override N.
+        #[arg(long)]
+        targets: Option<usize>,
+        /// Override M (a count or `adaptive`).
+        #[arg(long)]
+        herders: Option<HerderCount>,
+        /// Trace file (JSON Lines); none if omitted.
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
+    /// Read a state (JSON), apply exactly one noise-free step, print it in the same schema.
+    Step {
+        /// State file; `-` reads stdin.
+        #[arg(long)]
+        state: PathBuf,
+    },
+    /// Sweep ⟨task, method, M, N⟩ with fixed seeds and test-time noise.
+    Eval {
+        /// Tasks, comma separated.
+        #[arg(long, value_delimiter = ',', default_value = "driving,collecting")]
+        tasks: Vec<String>,
+        /// Methods, comma separated.
+        #[arg(
+            long,
+            value_delimiter = ',',
+            default_value = "strombom,ctrl,lama,farthest"
+        )]
+        methods: Vec<String>,
+        /// Target counts, comma separated.
+        #[arg(
+            long,
+            value_delimiter = ',',
+            default_value = "1,2,4,8,16,32,64,128,256,512,1024"
+        )]
+        targets: Vec<usize>,
+        /// Herder settings, comma separated (counts or `adaptive`).
+        #[arg(long, value_delimiter = ',', default_value = "1,4,adaptive")]
+        herders: Vec<HerderCount>,
+        /// Episodes per configuration.
+        #[arg(long, default_value_t = 100)]
+        episodes: usize,
+        /// Base of the episode seeds.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Override the presets' step limit.
+        #[arg(long)]
+        step_limit: Option<u64>,
+        /// Run shard i of n (`i/n`, 0-based).
+        #[arg(long, default_value = "0/1")]
+        shard: String,
+        /// Worker threads (default: all cores).
+        #[arg(long)]
+        threads: Option<usize>,
+        /// Write results.csv, results.json, results.md (and plots with --plots) here.
+        #[arg(long)]
+        out_dir: Option<PathBuf>,
+        /// Also draw the Fig. 3 plots into --out-dir.
+        #[arg(long)]
+        plots: bool,
+        /// Print the summary of the single configuration as JSON on stdout.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Draw the Fig. 3 plots from a results.json written by `eval`.
+    PlotFig3 {
+        /// results.json from `eval`.
+        #[arg(long)]
+        results: PathBuf,
+        /// Output directory.
+        #[arg(long)]
+        out_dir: PathBuf,
+    },
+    /// Run one driving episode and draw its Fig. 4-style trajectory (PNG + SVG).
+    PlotTrajectory {
+        /// Scenario preset or file.
+        #[arg(long, default_value = "paper-drive")]
+        scenario: String,
+        /// Policy.
+        #[arg(long, default_value = "farthest")]
+        policy: String,
+        /// Episode seed.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// N.
+        #[arg(long, default_value_t = 8)]
+        targets: usize,
+        /// M.
+        #[arg(long, default_value_t = 4)]
+        herders: usize,
+        /// Output path without extension.
+        #[arg(long)]
+        out: PathBuf,
+    },
+    /// Print a preset as complete TOML.
+    Scenario {
+        /// Preset name.
+        preset: String,
+    },
+}
+
+/// The policies the command line knows. A learned actor plugs in here: add its factory (for
+/// example one that loads a model file) and every subcommand, `eval` included, can use it.
+fn policy_factory(name: &str) -> Result<Arc<dyn PolicyFactory>> {
+    let method: Method = name.parse().map_err(|e: String| anyhow!(e))?;
+    Ok(Arc::new(method))
+}
+
+fn main() -> Result<()> {
+    match Cli::parse().command {
+        Command::Run {
+            scenario,
+            policy,
+            seed,
+            targets,
+            herders,
+            out,
+        } => run(&scenario, &policy, seed, targets, herders, out.as_deref()),
+        Command::Step { state } => {
+            let text = if state.as_os_str() == "-" {
+                std::io::read_to_string(std::io::stdin()).context("reading stdin")?
+            } else {
+                fs::read_to_string(&state)
+                    .with_context(|| format!("reading {}", state.display()))?
+            };
+            let next = step_state_json(&text)?;
+            println!("{}", serde_json::to_string_pretty(&next)?);
+            Ok(())
+        }
+        Command::Eval {
+            tasks,
+            methods,
+            targets,
+            herders,
+            episodes,
+            seed,
+            step_limit,
+            shard,
+            threads,
+            out_dir,
+            plots,
+            json,
+        } => {
+            let spec = SweepSpec {
+                tasks: tasks
+                    .iter()
+                    .map(|t| parse_task(t).ok_or_else(|| anyhow!("unknown task `{t}`")))
+                    .collect::<Result<_>>()?,
+                methods: methods
+                    .iter()
+                    .map(|m| policy_factory(m))
+                    .collect::<Result<_>>()?,
+                herders,
+                targets,
+                episodes,
+                base_seed: seed,
+                step_limit,
+                shard: parse_shard(&shard)?,
+            };
+            eval(spec, threads, out_dir.as_deref(), plots, json)
+        }
+        Command::PlotFig3 { results, out_dir } => {
+            let text = fs::read_to_string(&results)
+                .with_context(|| format!("reading {}", results.display()))?;
+            let results: Vec<ConfigResult> = serde_json::from_str(&text)?;
+            fs::create_dir_all(&out_dir)?;
+            for f in plot::fig3(&results, &out_dir)? {
+                eprintln!("wrote {}", f.display());
+            }
+            Ok(())
+        }
+        Command::PlotTrajectory {
+            scenario,
+            policy,
+            seed,
+            targets,
+            herders,
+            out,
+        } => {
+            let mut s = Scenario::from_arg(&scenario)?;
+            s.targets = targets;
+            s.herders = HerderCount::Fixed(herders);
+            s.validate()?;
+            let mut env = Env::new(s)?;
+            let mut p = policy_factory(&policy)?.make();
+            let mut states: Vec<World> = Vec::new();
+            let summary = run_episode(&mut env, p.as_mut(), seed, |w, _| states.push(w.clone()))?;
+            let title = format!(
+                "{policy}: {herders} herders, {targets} targets, seed {seed}: {} in {} s",
+                if summary.success {
+                    "success"
+                } else {
+                    "failure"
+                },
+                summary.time_s
+            );
+            if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
+                fs::create_dir_all(dir)?;
+            }
+            for f in plot::trajectory(&states, &title, &out)? {
+                eprintln!("wrote {}", f.display());
+            }
+            Ok(())
+        }
+        Command::Scenario { preset } => {
+            print!("{}", Scenario::preset(&preset)?.to_toml()?);
+            Ok(())
+        }
+    }
+}
+
+fn parse_shard(s: &str) -> Result<(usize, usize)> {
+    let (i, n) = s
+        .split_once('/')
+        .ok_or_else(|| anyhow!("--shard must be i/n, got `{s}`"))?;
+    let (i, n): (usize, usize) = (i.parse()?, n.parse()?);
+    if n == 0 || i >= n {
+        bail!("--shard {i}/{n}: need 0 <= i < n");
+    }
+    Ok((i, n))
+}
+
+fn run(
+    scenario: &str,
+    policy: &str,
+    seed: Option<u64>,
+    targets: Option<usize>,
+    herders: Option<HerderCount>,
+    out: Option<&Path>,
+) -> Result<()> {
+    let mut s = Scenario::from_arg(scenario)?;
+    if let Some(n) = targets {
+        s.targets = n;
+    }
+    if let Some(m) = herders {
+        s.herders = m;
+    }
+    s.validate()?;
+    let seed = seed.unwrap_or(s.seed);
+    let mut env = Env::new(s)?;
+    let mut p = policy_factory(policy)?.make();
+    let mut writer = match out {
+        Some(path) => Some(BufWriter::new(
+            fs::File::create(path).with_context(|| format!("creating {}", path.display()))?,
+        )),
+        None => None,
+    };
+    let mut io_error = None;
+    let mut last_actions: Vec<[f64; 3]> = Vec::new();
+    let mut previous: Option<World> = None;
+    let summary = run_episode(&mut env, p.as_mut(), seed, |w, outcome| {
+        // The commands of a step are the herders' displacement over dt before the caps: record
+        // what the world shows (displacement / dt), which is what was actually flown.
+        last_actions.clear();
+        if let Some(prev) = &previous {
+            last_actions.extend(prev.herders.iter().zip(&w.herders).map(|(a, b)| {
+                [
+                    (b[0] - a[0]) / w.dt,
+                    (b[1] - a[1]) / w.dt,
+                    (b[2] - a[2]) / w.dt,
+                ]
+            }));
+        }
+        if let Some(wr) = writer.as_mut() {
+            let line = TraceLine {
+                world: w.clone(),
+                actions: last_actions.clone(),
+                outcome: outcome.copied(),
+            };
+            let res = serde_json::to_writer(&mut *wr, &line)
+                .map_err(std::io::Error::from)
+                .and_then(|()| wr.write_all(b"\n"));
+            if let Err(e) = res {
+                io_error.get_or_insert(e);
+            }
+        }
+        previous = Some(w.clone());
+    })?;
+    if let Some(e) = io_error {
+        return Err(e).context("writing the trace");
+    }
+    if let Some(mut wr) = writer {
+        wr.flush()?;
+    }
+    println!("{}", serde_json::to_string_pretty(&summary)?);
+    Ok(())
+}
+
+fn eval(
+    spec: SweepSpec,
+    threads: Option<usize>,
+    out_dir: Option<&Path>,
+    plots: bool,
+    json: bool,
+) -> Result<()> {
+    let configs = spec.configs();
+    if json && configs.len() != 1 {
+        bail!(
+            "--json prints one configuration; this sweep (shard) has {}",
+            configs.len()
+        );
+    }
+    if plots && out_dir.is_none() {
+        bail!("--plots needs --out-dir");
+    }
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads.unwrap_or(0))
+        .build()?;
+    let total = (configs.len() * spec.episodes) as u64;
+    let bar = ProgressBar::new(total);
+    bar.set_style(
+        ProgressStyle::with_template(
+            "{elapsed_precise} [{bar:40}] {pos}/{len} episodes ({per_sec}, eta {eta})",
+        )?
+        .progress_chars("=> "),
+    );
+    let results = pool.install(|| run_sweep(&spec, &|| bar.inc(1)))?;
+    bar.finish();
+    if json {
+        println!("{}", serde_json::to_string_pretty(&results[0])?);
+    } else if out_dir.is_none() {
+        print!("{}", to_markdown(&results));
+    }
+    if let Some(dir) = out_dir {
+        fs::create_dir_all(dir)?;
+        fs::write(dir.join("results.csv"), to_csv(&results))?;
+        fs::write(
+            dir.join("results.json"),
+            serde_json::to_string_pretty(&results)?,
+        )?;
+        fs::write(dir.join("results.md"), to_markdown(&results))?;
+        eprintln!("wrote {}/results.{{csv,json,md}}", dir.display());
+        if plots {
+            for f in plot::fig3(&results, dir)? {
+                eprintln!("wrote {}", f.display());
+            }
+        }
+    }
+    Ok(())
+}
