@@ -274,6 +274,11 @@ struct Scratch {
 
 const UNASSIGNED: u32 = u32::MAX;
 
+/// Extra assignment cost for a tentative track (a log-likelihood ratio; 4 to 12 measured alike): a
+/// confirmed track keeps a contested detection unless the tentative one fits clearly better,
+/// so a track born from one noise outlier cannot take over its target.
+const TENTATIVE_PENALTY: f64 = 8.0;
+
 /// The multi-target tracker; see the [module docs](self).
 #[derive(Debug, Clone)]
 pub struct Tracker {
@@ -501,8 +506,9 @@ impl Tracker {
             // Negative log-likelihood up to a constant: d^2/S + ln|S| with |S| = s^2, offset by
             // ln(R^2) so it stays >= 0. Without the log term the most uncertain track (a
             // newborn with a wide gate) would win every contest.
-            let log_det = 2.0 * (s / meas_var).ln();
             let confirmed = track.status == TrackStatus::Confirmed;
+            let log_det =
+                2.0 * (s / meas_var).ln() + if confirmed { 0.0 } else { TENTATIVE_PENALTY };
             let Some((cx, cy)) = cell_index(track.position) else {
                 continue;
             };
