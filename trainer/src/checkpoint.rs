@@ -279,6 +279,58 @@ pub fn from_bytes(bytes: &[u8]) -> Result<Checkpoint, CheckpointError> {
     })
 }
 
+/// Writes only the actor (`actor.*` tensors), e.g. the float reference of a shipped model.
+pub fn save_actor(path: &Path, actor: &MultiTaskMlp) -> Result<(), CheckpointError> {
+    let mut tensors = Vec::new();
+    push_net(&mut tensors, "actor", actor);
+    let views = tensors
+        .iter()
+        .map(|(name, shape, bytes)| {
+            TensorView::new(Dtype::F32, shape.clone(), bytes)
+                .map(|v| (name.clone(), v))
+                .map_err(|e| CheckpointError::Format(e.to_string()))
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    let mut meta = HashMap::new();
+    meta.insert("format".into(), "skyherd-trainer-actor-v1".into());
+    meta.insert("tasks".into(), actor.tasks().to_string());
+    meta.insert("shared_layers".into(), actor.shared.len().to_string());
+    let bytes = safetensors::serialize(views, &Some(meta))
+        .map_err(|e| CheckpointError::Format(e.to_string()))?;
+    std::fs::write(path, bytes).map_err(|source| CheckpointError::Io {
+        path: path.to_owned(),
+        source,
+    })
+}
+
+/// Reads an actor written by [`save_actor`] (or the actor of a full checkpoint).
+pub fn load_actor(path: &Path) -> Result<MultiTaskMlp, CheckpointError> {
+    let bytes = std::fs::read(path).map_err(|source| CheckpointError::Io {
+        path: path.to_owned(),
+        source,
+    })?;
+    let (_, header) =
+        SafeTensors::read_metadata(&bytes).map_err(|e| CheckpointError::Format(e.to_string()))?;
+    let meta = header
+        .metadata()
+        .clone()
+        .ok_or(CheckpointError::Metadata("__metadata__"))?;
+    let number = |key: &'static str| -> Result<usize, CheckpointError> {
+        meta.get(key)
+            .and_then(|v| v.parse().ok())
+            .ok_or(CheckpointError::Metadata(key))
+    };
+    let st =
+        SafeTensors::deserialize(&bytes).map_err(|e| CheckpointError::Format(e.to_string()))?;
+    read_net(
+        &st,
+        "actor",
+        number("tasks")?,
+        number("shared_layers")?,
+        Activation::Tanh,
+    )
+}
+
 /// Writes a checkpoint atomically (temporary file, then rename), so a run killed mid-write
 /// leaves the previous checkpoint intact.
 pub fn save(path: &Path, checkpoint: &Checkpoint) -> Result<(), CheckpointError> {
@@ -352,7 +404,6 @@ mod tests {
         let path = dir.join("c.safetensors");
         save(&path, &original).expect("save");
         let back = load(&path).expect("load");
-        let _ = std::fs::remove_dir_all(&dir);
         let (a, b) = (&original.agent, &back.agent);
         assert_eq!(a.actor, b.actor);
         assert_eq!(a.critic, b.critic);
@@ -364,5 +415,17 @@ mod tests {
         assert_eq!(back.progress, original.progress);
         assert_eq!(back.config, original.config);
         assert!(from_bytes(&to_bytes(&original).expect("bytes")[..100]).is_err());
+        let actor_path = dir.join("actor.safetensors");
+        std::fs::create_dir_all(&dir).expect("dir");
+        save_actor(&actor_path, &original.agent.actor).expect("save actor");
+        assert_eq!(
+            load_actor(&actor_path).expect("load actor"),
+            original.agent.actor
+        );
+        assert_eq!(
+            load_actor(&path).expect("actor of a full checkpoint"),
+            original.agent.actor
+        );
+        let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -89,3 +89,21 @@ fn tiny_training_runs_resumes_and_exports() {
     assert!(p.rms_component < 0.05, "{p:?}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn the_same_seed_trains_the_same_actor() {
+    let run = |tag: &str| {
+        let dir = std::env::temp_dir().join(format!("skyherd-seed-{tag}-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let mut config = tiny_config(&dir);
+        config.training.env_steps = 150;
+        train(&config, None, &mut Quiet).expect("training runs");
+        let c = checkpoint::load(&dir.join("last.safetensors")).expect("checkpoint");
+        let _ = std::fs::remove_dir_all(&dir);
+        c.agent
+    };
+    let (a, b) = (run("a"), run("b"));
+    assert_eq!(a.actor, b.actor);
+    assert_eq!(a.critic, b.critic);
+    assert!(a.updates > 0);
+}

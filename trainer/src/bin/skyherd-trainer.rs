@@ -57,6 +57,9 @@ enum Command {
         /// Calibration episodes per scenario.
         #[arg(long, default_value_t = 6)]
         calibration_episodes: usize,
+        /// Also write the float actor here (the reference the parity test compares against).
+        #[arg(long)]
+        actor_out: Option<PathBuf>,
     },
     /// Evaluate an int8 model file (as it flies) and optionally the baselines, with test noise.
     Eval {
@@ -72,6 +75,9 @@ enum Command {
         /// Also run the four rule-based baselines.
         #[arg(long)]
         baselines: bool,
+        /// Also run this float actor (the export's `--actor-out`, or a checkpoint).
+        #[arg(long)]
+        actor: Option<PathBuf>,
         /// Scenarios as `task:N:M` (M = 0 adaptive); default: a standard set.
         #[arg(long, value_delimiter = ',')]
         scenarios: Vec<String>,
@@ -172,6 +178,7 @@ fn main() -> Result<()> {
             out,
             calibration_steps,
             calibration_episodes,
+            actor_out,
         } => {
             let c = checkpoint::load(&path)?;
             let actor = &c.agent.actor;
@@ -188,11 +195,23 @@ fn main() -> Result<()> {
             let max_speed = skyherd_sim::Scenario::paper_drive().limits.herder as f32;
             let bytes = export(actor, max_speed, &calibration)?;
             let held_out = record_observations(actor, &scenarios, 2, 3_100_000_000, 600, 3)?;
+            let on_calibration = parity(actor, &bytes, &calibration)?;
+            println!(
+                "parity on the calibration observations: RMS {:.4} per component, max {:.4}",
+                on_calibration.rms_component, on_calibration.max_component
+            );
             let p = parity(actor, &bytes, &held_out)?;
             if let Some(dir) = out.parent() {
                 std::fs::create_dir_all(dir)?;
             }
             std::fs::write(&out, &bytes)?;
+            if let Some(path) = actor_out {
+                if let Some(dir) = path.parent() {
+                    std::fs::create_dir_all(dir)?;
+                }
+                checkpoint::save_actor(&path, actor)?;
+                println!("wrote the float actor to {}", path.display());
+            }
             println!(
                 "wrote {} ({} bytes), calibrated on {} observations",
                 out.display(),
@@ -209,9 +228,13 @@ fn main() -> Result<()> {
             episodes,
             seed_base,
             baselines,
+            actor: float_actor,
             scenarios,
             threads,
         } => {
+            let float_actor = float_actor
+                .map(|p| checkpoint::load_actor(&p))
+                .transpose()?;
             let bytes = std::fs::read(&model)?;
             let actor = Actor::from_bytes(&bytes)
                 .map_err(|e| anyhow::anyhow!("{}: {e:?}", model.display()))?;
@@ -243,6 +266,11 @@ fn main() -> Result<()> {
                 let rows =
                     evaluate_flat(&scenarios, episodes, seed_base, || ActorPolicy::new(actor))?;
                 print!("{}", markdown_table("mtddpg-v1 (int8)", &rows));
+                if let Some(float) = &float_actor {
+                    let rows =
+                        evaluate_flat(&scenarios, episodes, seed_base, || ActorPolicy::new(float))?;
+                    print!("{}", markdown_table("mtddpg-v1 (float)", &rows));
+                }
                 if baselines {
                     for method in Method::ALL {
                         let rows = evaluate_flat(&scenarios, episodes, seed_base, || {
