@@ -49,7 +49,7 @@
 //! | 41-42 | nearest arena wall, relative (the closest point on it) |
 //! | 43 | drone distance to the nearest wall, `sc(d / R)` |
 //! | 44 | smallest target distance to any wall, `sc(d / R)` |
-//! | 45 | speed limit in goal radii per second, `sc(v / R)` |
+//! | 45 | fraction of targets within one goal radius of the drone |
 //!
 //! "relative" means `compress((p - own) / R)` in the local frame, with
 //! `compress(v) = v * ln(1 + |v|) / |v|`; `sc(x) = sign(x) ln(1 + |x|)`.
@@ -79,7 +79,11 @@ use core::fmt;
 use libm::{logf, sqrtf};
 
 /// Version of the feature layout; written into every model file, a mismatch is an error.
-pub const ENCODER_VERSION: u16 = 1;
+///
+/// v2 replaced v1's feature 45 (speed limit per goal radius per *second*), which differs
+/// between the paper arena (1 s steps) and the scaled indoor room (0.1 s steps) although the
+/// two worlds are the same map; v2 has no feature that depends on the time step.
+pub const ENCODER_VERSION: u16 = 2;
 
 /// Length of the feature vector.
 pub const FEATURES: usize = 46;
@@ -341,6 +345,7 @@ pub fn encode(input: &ObsInput<'_>, out: &mut [f32; FEATURES]) -> Result<LocalFr
     let mut mine = 0usize;
     let mut my_farthest = (f32::NEG_INFINITY, own);
     let mut min_wall = f32::INFINITY;
+    let mut near_me = 0usize;
     let r2 = input.goal_radius * input.goal_radius;
     for &t in input.targets {
         sum[0] += t[0];
@@ -353,6 +358,9 @@ pub fn encode(input: &ObsInput<'_>, out: &mut [f32; FEATURES]) -> Result<LocalFr
             inside += 1;
         }
         let to_me2 = dist2(t, own);
+        if to_me2 <= r2 {
+            near_me += 1;
+        }
         if to_me2 < nearest.0 {
             nearest = (to_me2, t);
         }
@@ -440,6 +448,7 @@ pub fn encode(input: &ObsInput<'_>, out: &mut [f32; FEATURES]) -> Result<LocalFr
             out[33 + k] = count as f32 / n as f32;
         }
         out[44] = soft(min_wall * inv_r);
+        out[45] = near_me as f32 / n as f32;
     }
     out[22] = (own3[2] / input.area[2]).clamp(0.0, 1.0);
 
@@ -479,7 +488,6 @@ pub fn encode(input: &ObsInput<'_>, out: &mut [f32; FEATURES]) -> Result<LocalFr
     let (wall_distance, wall_point) = nearest_wall(own, input.area);
     put2(out, 41, rel(wall_point));
     out[43] = soft(wall_distance * inv_r);
-    out[45] = soft(input.max_speed * inv_r);
     Ok(frame)
 }
 
