@@ -53,9 +53,8 @@ pub enum ConfigError {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct CurriculumStage {
-    /// The stage starts once this fraction of the DDPG phase is done (0 for the first stage);
-    /// the fraction is the larger of env steps over `training.env_steps` and wall time over
-    /// `training.wall_clock_limit_s`, so a run cut by its time budget still reaches every stage.
+    /// The stage starts once this fraction of `training.env_steps` is done (0 for the first
+    /// stage). Counted in steps, not time, so that a seed fixes the run on any machine.
     pub from_progress: f64,
     /// Target counts N drawn uniformly per episode.
     pub targets: Vec<usize>,
@@ -218,13 +217,13 @@ pub struct LoopConfig {
 impl Default for LoopConfig {
     fn default() -> Self {
         LoopConfig {
-            env_steps: 1_000_000,
+            env_steps: 400_000,
             envs: 8,
             updates_per_env_step: 0.5,
             replay_capacity: 500_000,
             learning_starts: 2_000,
             episode_step_limit: 600,
-            wall_clock_limit_s: 2_400.0,
+            wall_clock_limit_s: 1_200.0,
             checkpoint_every_s: 120.0,
             threads: 2,
             noise: true,

@@ -290,14 +290,9 @@ impl Run<'_> {
         let config = self.config;
         let t = &config.training;
         let start_steps = self.progress.env_steps;
-        // Curriculum progress: steps or wall time, whichever is further along.
-        let started = self.started;
-        let wall_offset = self.wall_offset;
-        let fraction = move |steps: u64| {
-            let by_steps = steps as f64 / t.env_steps.max(1) as f64;
-            let wall = wall_offset + started.elapsed().as_secs_f64();
-            by_steps.max(wall / t.wall_clock_limit_s.max(1.0)).min(1.0)
-        };
+        // Curriculum progress counts environment steps only, so a seed fixes the run whatever
+        // the machine's speed (the wall-clock limit only decides where it stops).
+        let fraction = |steps: u64| (steps as f64 / t.env_steps.max(1) as f64).min(1.0);
         let draw_at = |progress: f64| {
             move |rng: &mut ChaCha8Rng, task| draw_from_stage(config, progress, rng, task)
         };
