@@ -59,9 +59,13 @@ struct MissionArgs {
     /// order given).
     #[arg(long = "drone", required = true)]
     drones: Vec<String>,
-    /// MAVLink 2 signing key (32 raw bytes or 64 hex digits) for every link.
+    /// MAVLink 2 signing key (32 raw bytes or 64 hex digits) for the uplinks to the drones'
+    /// onboard computers.
     #[arg(long)]
     key: Option<PathBuf>,
+    /// Signing key for the fleet link (autopilot telemetry and sensor scans) [default: unsigned].
+    #[arg(long)]
+    fleet_key: Option<PathBuf>,
     /// The task.
     #[arg(long, value_enum, default_value_t = TaskArg::Driving)]
     task: TaskArg,
@@ -188,13 +192,15 @@ fn mission(args: MissionArgs) -> Result<()> {
         TaskArg::Driving => Task::Driving,
         TaskArg::Collecting => Task::Collecting,
     };
-    let key = args
-        .key
-        .as_ref()
-        .map(|path| SigningKey::from_file(path))
-        .transpose()
-        .context("reading the signing key")?;
-    let config = |link_id: u8| LinkConfig {
+    let read_key = |path: &Option<PathBuf>| {
+        path.as_ref()
+            .map(|path| SigningKey::from_file(path))
+            .transpose()
+            .context("reading a signing key")
+    };
+    let key = read_key(&args.key)?;
+    let fleet_key = read_key(&args.fleet_key)?;
+    let config = |key: &Option<SigningKey>, link_id: u8| LinkConfig {
         signing: key.clone().map(|key| Signing {
             key,
             link_id,
@@ -203,7 +209,7 @@ fn mission(args: MissionArgs) -> Result<()> {
         ..LinkConfig::default()
     };
 
-    let mut fleet = GroundLink::open(&args.fleet, config(0))
+    let mut fleet = GroundLink::open(&args.fleet, config(&fleet_key, 0))
         .with_context(|| format!("opening the fleet link {}", args.fleet))?;
     if let Some(path) = &args.tlog {
         let file = File::create(path).with_context(|| format!("creating {}", path.display()))?;
@@ -214,7 +220,7 @@ fn mission(args: MissionArgs) -> Result<()> {
             .iter()
             .enumerate()
             .map(|(i, (id, address))| {
-                GroundLink::open(address, config(i as u8 + 1))
+                GroundLink::open(address, config(&key, i as u8 + 1))
                     .map(|link| (*id, link))
                     .with_context(|| format!("opening the uplink {address} of drone {id}"))
             })
@@ -246,9 +252,18 @@ fn mission(args: MissionArgs) -> Result<()> {
     plan.expected_targets = args.targets;
     plan.time_limit_s = args.time_limit;
     let mut mission = MissionControl::new(plan);
+    // The tracker's defaults are for the paper's arena (45 m goal, 5 m/s herders); a smaller
+    // world scales its lengths with the goal radius and its speeds with the speed limit.
+    let length = f64::from(args.goal_radius) / 45.0;
+    let speed = f64::from(args.max_speed) / 5.0;
+    let defaults = TrackerConfig::default();
     let mut tracker = Tracker::new(TrackerConfig {
         measurement_std: args.measurement_std,
-        ..TrackerConfig::default()
+        acceleration_std: defaults.acceleration_std * speed * speed / length,
+        initial_velocity_std: defaults.initial_velocity_std * speed,
+        max_gate_radius: (defaults.max_gate_radius * length).max(5.0 * args.measurement_std),
+        birth_exclusion_radius: defaults.birth_exclusion_radius * length,
+        ..defaults
     })?;
     let mut uplink = UplinkEncoder::new();
     let mut assembler = ScanAssembler::default();
@@ -310,7 +325,7 @@ fn mission(args: MissionArgs) -> Result<()> {
                 DroneReport {
                     system_id: *id,
                     position: vehicle.and_then(|v| v.position_sim()),
-                    last_heard: vehicle.map_or(f64::NEG_INFINITY, |v| v.last_heartbeat),
+                    last_heard: vehicle.map_or(f64::NEG_INFINITY, |v| v.link.last_heard),
                 }
             })
             .collect();

@@ -177,6 +177,12 @@ impl MockAutopilot {
         }
     }
 
+    /// When (s) the last accepted velocity setpoint arrived; lets a lockstep loop wait for the
+    /// companion computer's answer to the latest position.
+    pub fn last_setpoint_at(&self) -> Option<f64> {
+        self.last_setpoint
+    }
+
     /// Configuration.
     pub fn config(&self) -> &AutopilotConfig {
         &self.config

@@ -31,6 +31,7 @@
 
 pub mod autopilot;
 pub mod faults;
+pub mod mission;
 pub mod node;
 pub mod sensor;
 

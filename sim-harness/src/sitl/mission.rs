@@ -1,0 +1,412 @@
+//! The simulator side of a software-in-the-loop mission: the paper's world, one mock autopilot
+//! per drone on its own UDP socket, and the tracking sensor reporting to the ground station —
+//! stepped in lockstep with the onboard daemons.
+//!
+//! One tick is [`SitlConfig::tick_s`] of simulated time (0.1 s: autopilots report positions at
+//! 10 Hz, daemons answer each one):
+//! 1. every live autopilot node receives what arrived, flies its current setpoint and sends its
+//!    telemetry stamped with the simulated time;
+//! 2. the world advances one tick with the velocities the autopilots fly (herders first, as in
+//!    [`crate::world::advance`]), and each autopilot is told where the world put its drone;
+//! 3. on sensor ticks the detection sensor scans the targets and sends the scan (MAVLink
+//!    `DEBUG_VECT`, see `skyherd_ground::detections`) to the ground station;
+//! 4. **lockstep**: every drone whose daemon is streaming setpoints is waited for (up to
+//!    [`SitlConfig::lockstep_timeout`] of wall time) until it has answered this tick's position,
+//!    so the loop runs as fast as the processes allow and never outruns them.
+//!
+//! The world is integrated with the tick as its time step: for the `indoor` preset that is the
+//! scenario's own 0.1 s; for the paper presets (1 s steps) it integrates the same velocity field
+//! ten times finer.
+
+use std::net::{SocketAddr, UdpSocket};
+use std::thread;
+use std::time::{Duration, Instant};
+
+use skyherd_ground::detections::scan_messages;
+use skyherd_ground::link::codec::{Codec, Signing};
+use skyherd_onboard::frame::{ned_to_sim, sim_to_ned};
+use thiserror::Error;
+
+use super::autopilot::{AutopilotConfig, MockAutopilot};
+use super::faults::FaultConfig;
+use super::node::{AutopilotNode, NodeOptions};
+use super::sensor::{DetectionSensor, SensorConfig, SensorError};
+use crate::env::Env;
+use crate::scenario::{Scenario, ScenarioError};
+use crate::world::{StepScratch, World, WorldError, advance};
+
+/// System id of the tracking sensor on the fleet link.
+pub const SENSOR_SYSTEM_ID: u8 = 200;
+
+/// Everything a SITL world needs.
+#[derive(Clone, Debug)]
+pub struct SitlConfig {
+    /// The episode family; `seed` picks the episode.
+    pub scenario: Scenario,
+    /// Episode seed (spawn, boids-parameter noise, sensor noise, faults).
+    pub seed: u64,
+    /// Simulated seconds per tick.
+    pub tick_s: f64,
+    /// Seconds between sensor scans.
+    pub sensor_period_s: f64,
+    /// The ground station's fleet address (telemetry and scans go there).
+    pub ground: SocketAddr,
+    /// MAVLink 2 signing on the autopilot and sensor links.
+    pub signing: Option<Signing>,
+    /// Faults on the autopilot links.
+    pub faults: FaultConfig,
+    /// Sensor model.
+    pub sensor: SensorConfig,
+    /// How long to wait for a streaming daemon's answer, wall time.
+    pub lockstep_timeout: Duration,
+    /// 0 = as fast as possible; 1 = real time; k = k times real time.
+    pub speed: f64,
+    /// Wall time per tick until every drone streams setpoints: the processes need real time to
+    /// hear each other, arm and switch modes before lockstep can hold them.
+    pub pre_flight_pace: Duration,
+    /// Give up this many simulated seconds after the start of flight.
+    pub time_limit_s: f64,
+    /// Cut drone `index` off (its autopilot stops, its herder holds) at simulated time `t`.
+    pub lose_drone: Option<(usize, f64)>,
+}
+
+impl SitlConfig {
+    /// Defaults for a scenario: 0.1 s ticks and scans, sensor noise from the scenario's sensing
+    /// noise with 95 % detection and no false alarms, 200 ms lockstep wait, as fast as
+    /// possible, the scenario's step limit as time limit.
+    pub fn new(scenario: Scenario, seed: u64, ground: SocketAddr) -> Self {
+        let sensor = SensorConfig {
+            position_std: scenario.noise.sensing_std,
+            p_detect: 0.95,
+            false_alarms_per_scan: 0.0,
+            area: [scenario.area.width, scenario.area.depth],
+        };
+        let time_limit_s = scenario.step_limit as f64 * scenario.dt;
+        Self {
+            scenario,
+            seed,
+            tick_s: 0.1,
+            sensor_period_s: 0.1,
+            ground,
+            signing: None,
+            faults: FaultConfig::default(),
+            sensor,
+            lockstep_timeout: Duration::from_millis(200),
+            speed: 0.0,
+            pre_flight_pace: Duration::from_millis(10),
+            time_limit_s,
+            lose_drone: None,
+        }
+    }
+}
+
+/// Why the SITL world could not run.
+#[derive(Debug, Error)]
+pub enum SitlError {
+    /// The scenario is invalid.
+    #[error("scenario: {0}")]
+    Scenario(#[from] ScenarioError),
+    /// The sensor configuration is invalid.
+    #[error("sensor: {0}")]
+    Sensor(#[from] SensorError),
+    /// The world refused a step.
+    #[error("world: {0}")]
+    World(#[from] WorldError),
+    /// A socket failed.
+    #[error("network: {0}")]
+    Io(#[from] std::io::Error),
+}
+
+/// How an episode ended.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Ending {
+    /// Every target is inside the goal.
+    Success,
+    /// A herder or target left the arena.
+    LeftArea,
+    /// The time limit passed.
+    TimeLimit,
+}
+
+/// What one tick did.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct TickReport {
+    /// Simulated time after the tick, s.
+    pub time_s: f64,
+    /// Drones flying under external control (armed, OFFBOARD/GUIDED).
+    pub flying: usize,
+    /// Set once the episode has ended.
+    pub ending: Option<Ending>,
+}
+
+/// The SITL world: the true state, the autopilots and the sensor.
+pub struct SitlWorld {
+    config: SitlConfig,
+    world: World,
+    scratch: StepScratch,
+    nodes: Vec<Option<AutopilotNode>>,
+    sensor: DetectionSensor,
+    sensor_socket: UdpSocket,
+    sensor_codec: Codec,
+    time_s: f64,
+    next_scan: f64,
+    flight_start: Option<f64>,
+    ending: Option<(Ending, f64)>,
+    path_length: f64,
+    actions: Vec<[f64; 3]>,
+    wall_start: Instant,
+    lockstep_misses: u64,
+}
+
+impl std::fmt::Debug for SitlWorld {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("SitlWorld")
+            .field("time_s", &self.time_s)
+            .field("drones", &self.nodes.len())
+            .finish()
+    }
+}
+
+impl SitlWorld {
+    /// Spawns the episode (the scenario's spawn rules and per-episode boids noise) and binds one
+    /// autopilot per drone on an ephemeral loopback port.
+    pub fn new(config: SitlConfig) -> Result<Self, SitlError> {
+        let mut env = Env::new(config.scenario.clone())?;
+        let mut world = env.reset(config.seed).clone();
+        world.dt = config.tick_s;
+        let scratch = StepScratch::with_capacity(world.targets.len());
+        let mut nodes = Vec::with_capacity(world.herders.len());
+        for (i, herder) in world.herders.iter().enumerate() {
+            let mut autopilot = AutopilotConfig::px4(i as u8 + 1);
+            autopilot.max_speed = config.scenario.limits.herder;
+            let options = NodeOptions {
+                signing: config.signing.clone(),
+                faults: config.faults.clone(),
+                seed: config.seed.wrapping_add(1000 + i as u64),
+                peers: vec![config.ground],
+            };
+            let node = AutopilotNode::bind(
+                "127.0.0.1:0".parse().expect("literal address"),
+                MockAutopilot::new(autopilot, sim_to_ned(*herder), 0.0),
+                options,
+            )?;
+            nodes.push(Some(node));
+        }
+        let sensor = DetectionSensor::new(config.sensor.clone(), config.seed ^ 0x5EA5_0000)?;
+        let sensor_socket = UdpSocket::bind("127.0.0.1:0")?;
+        let sensor_codec = Codec::new(SENSOR_SYSTEM_ID, 1, config.signing.clone());
+        let herders = world.herders.len();
+        Ok(Self {
+            config,
+            world,
+            scratch,
+            nodes,
+            sensor,
+            sensor_socket,
+            sensor_codec,
+            time_s: 0.0,
+            next_scan: 0.0,
+            flight_start: None,
+            ending: None,
+            path_length: 0.0,
+            actions: vec![[0.0; 3]; herders],
+            wall_start: Instant::now(),
+            lockstep_misses: 0,
+        })
+    }
+
+    /// Each drone's autopilot address, by herder index (system id = index + 1).
+    pub fn autopilot_addresses(&self) -> Vec<SocketAddr> {
+        self.nodes
+            .iter()
+            .filter_map(|n| n.as_ref().and_then(|n| n.local_addr().ok()))
+            .collect()
+    }
+
+    /// The true world.
+    pub fn world(&self) -> &World {
+        &self.world
+    }
+
+    /// Simulated time, s.
+    pub fn time_s(&self) -> f64 {
+        self.time_s
+    }
+
+    /// When every live drone was first flying under external control, s.
+    pub fn flight_start(&self) -> Option<f64> {
+        self.flight_start
+    }
+
+    /// How the episode ended and when, once it has.
+    pub fn ending(&self) -> Option<(Ending, f64)> {
+        self.ending
+    }
+
+    /// Total distance flown by all herders since the start of flight, metres.
+    pub fn path_length(&self) -> f64 {
+        self.path_length
+    }
+
+    /// Ticks in which a streaming daemon did not answer within the lockstep timeout.
+    pub fn lockstep_misses(&self) -> u64 {
+        self.lockstep_misses
+    }
+
+    /// Autopilot failsafes (setpoint loss) so far, all drones.
+    pub fn failsafe_events(&self) -> u64 {
+        self.nodes
+            .iter()
+            .flatten()
+            .map(|n| n.autopilot().failsafe_events())
+            .sum()
+    }
+
+    /// Keep stepping autopilots at time 0 (no motion) until every one has heard from its
+    /// daemon, or `timeout` of wall time passes; returns whether all did.
+    pub fn wait_for_daemons(&mut self, timeout: Duration) -> Result<bool, SitlError> {
+        let start = Instant::now();
+        loop {
+            let mut all = true;
+            for node in self.nodes.iter_mut().flatten() {
+                node.step(0.0)?;
+                all &= node.codec_stats().frames > 0;
+            }
+            if all {
+                self.wall_start = Instant::now();
+                return Ok(true);
+            }
+            if start.elapsed() > timeout {
+                return Ok(false);
+            }
+            thread::sleep(Duration::from_millis(5));
+        }
+    }
+
+    /// One lockstep tick; see the module docs.
+    pub fn tick(&mut self) -> Result<TickReport, SitlError> {
+        let t = self.time_s + self.config.tick_s;
+        if let Some((index, at)) = self.config.lose_drone
+            && t >= at
+            && let Some(slot) = self.nodes.get_mut(index)
+        {
+            *slot = None;
+        }
+        // 1. Autopilots: receive, fly, report.
+        let mut flying = 0;
+        for (i, slot) in self.nodes.iter_mut().enumerate() {
+            self.actions[i] = match slot {
+                Some(node) => {
+                    let v = ned_to_sim(node.step(t)?);
+                    let ap = node.autopilot();
+                    if ap.armed() && ap.mode() == ap.config().flavour.external_mode() {
+                        flying += 1;
+                    }
+                    v
+                }
+                None => [0.0; 3],
+            };
+        }
+        // 2. The world, with the velocities flown; then the autopilots follow the world.
+        let before = self.world.herders.clone();
+        advance(&mut self.world, &self.actions, &mut self.scratch)?;
+        for (i, slot) in self.nodes.iter_mut().enumerate() {
+            if let Some(node) = slot {
+                let p = self.world.herders[i];
+                let v = [
+                    (p[0] - before[i][0]) / self.config.tick_s,
+                    (p[1] - before[i][1]) / self.config.tick_s,
+                    (p[2] - before[i][2]) / self.config.tick_s,
+                ];
+                node.autopilot_mut().set_state(sim_to_ned(p), sim_to_ned(v));
+            }
+        }
+        let live = self.nodes.iter().flatten().count();
+        if self.flight_start.is_none() && live > 0 && flying == live {
+            self.flight_start = Some(t);
+        }
+        if self.flight_start.is_some() && self.ending.is_none() {
+            self.path_length += before
+                .iter()
+                .zip(&self.world.herders)
+                .map(|(a, b)| {
+                    ((b[0] - a[0]).powi(2) + (b[1] - a[1]).powi(2) + (b[2] - a[2]).powi(2)).sqrt()
+                })
+                .sum::<f64>();
+        }
+        // 3. The sensor.
+        if t + 1e-9 >= self.next_scan {
+            self.next_scan = t + self.config.sensor_period_s;
+            let detections = self.sensor.scan(&self.world.targets);
+            for message in scan_messages(t, &detections) {
+                let bytes = self.sensor_codec.encode(&message);
+                match self.sensor_socket.send_to(&bytes, self.config.ground) {
+                    Ok(_) => {}
+                    // Nobody listening yet (ICMP unreachable): the ground is starting or gone.
+                    Err(e) if e.kind() == std::io::ErrorKind::ConnectionRefused => {}
+                    Err(e) => return Err(e.into()),
+                }
+            }
+        }
+        self.time_s = t;
+        // The truth decides the episode.
+        if self.ending.is_none() {
+            if self.world.anything_outside() {
+                self.ending = Some((Ending::LeftArea, t));
+            } else if self.world.all_targets_in_goal() {
+                self.ending = Some((Ending::Success, t));
+            } else if self
+                .flight_start
+                .is_some_and(|s| t - s > self.config.time_limit_s)
+            {
+                self.ending = Some((Ending::TimeLimit, t));
+            }
+        }
+        // 4. Lockstep: wait for every streaming daemon's answer to this tick's position.
+        let all_streaming = self.wait_for_answers(t)?;
+        if self.flight_start.is_none() && !all_streaming {
+            thread::sleep(self.config.pre_flight_pace);
+        }
+        if self.config.speed > 0.0 {
+            let due = Duration::from_secs_f64(t / self.config.speed);
+            if let Some(rest) = due.checked_sub(self.wall_start.elapsed()) {
+                thread::sleep(rest);
+            }
+        }
+        Ok(TickReport {
+            time_s: t,
+            flying,
+            ending: self.ending.map(|(e, _)| e),
+        })
+    }
+
+    /// Returns whether every live drone is streaming.
+    fn wait_for_answers(&mut self, t: f64) -> Result<bool, SitlError> {
+        let start = Instant::now();
+        let streaming = |node: &AutopilotNode| {
+            node.autopilot()
+                .last_setpoint_at()
+                .is_some_and(|at| t - at <= 1.0)
+        };
+        loop {
+            let mut waiting = false;
+            for node in self.nodes.iter_mut().flatten() {
+                if streaming(node) && node.autopilot().last_setpoint_at() < Some(t - 1e-9) {
+                    // Same `t`: the autopilot receives without moving or re-sending telemetry.
+                    node.step(t)?;
+                    waiting |= node.autopilot().last_setpoint_at() < Some(t - 1e-9);
+                }
+            }
+            let all_streaming = self.nodes.iter().flatten().all(streaming);
+            if !waiting {
+                return Ok(all_streaming);
+            }
+            if start.elapsed() > self.config.lockstep_timeout {
+                self.lockstep_misses += 1;
+                return Ok(all_streaming);
+            }
+            thread::sleep(Duration::from_micros(50));
+        }
+    }
+}
