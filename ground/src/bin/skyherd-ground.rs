@@ -102,6 +102,10 @@ struct MissionArgs {
     /// Write one CSV row per scan here.
     #[arg(long)]
     csv: Option<PathBuf>,
+    /// Fault injection: send nothing up to the drones from START for DURATION seconds of
+    /// mission clock (START,DURATION).
+    #[arg(long)]
+    cut_uplink: Option<String>,
 }
 
 fn parse_floats<const N: usize>(text: &str, what: &str) -> Result<[f32; N]> {
@@ -273,8 +277,20 @@ fn mission(args: MissionArgs) -> Result<()> {
     let mut last_command_at = f64::NEG_INFINITY;
     let mut ended_at: Option<f64> = None;
     let mut scans = 0u64;
+    let mut sensor_silent = false;
     let mut now = 0.0;
     let mut herders = vec![[0.0f32; 3]; drones.len()];
+    let cut: Option<[f32; 2]> = args
+        .cut_uplink
+        .as_deref()
+        .map(|c| parse_floats(c, "--cut-uplink"))
+        .transpose()?;
+    let uplink_cut = |now: f64| {
+        cut.is_some_and(|[start, length]| {
+            now >= f64::from(start) && now < f64::from(start) + f64::from(length)
+        })
+    };
+    let mut cut_reported = false;
 
     eprintln!(
         "ground: mission {task:?} to goal {goal:?} r={} with drones {:?}",
@@ -295,14 +311,21 @@ fn mission(args: MissionArgs) -> Result<()> {
         fleet.tick(now)?;
         let Some(scan) = scan else {
             if last_scan_wall.elapsed().as_secs_f64() > args.idle_timeout {
-                if ended_at.is_some() {
-                    break;
+                if scans == 0 {
+                    bail!(
+                        "no sensor scan for {} s (is the simulator running and sending to {}?)",
+                        args.idle_timeout,
+                        args.fleet
+                    );
                 }
-                bail!(
-                    "no sensor scan for {} s (is the simulator running and sending to {}?)",
-                    args.idle_timeout,
-                    args.fleet
+                // The sensor went silent (the simulation ended, or the sensor failed): report
+                // where the mission stood.
+                eprintln!(
+                    "ground: no sensor scan for {} s, stopping",
+                    args.idle_timeout
                 );
+                sensor_silent = true;
+                break;
             }
             continue;
         };
@@ -354,15 +377,24 @@ fn mission(args: MissionArgs) -> Result<()> {
             }
             None => {}
         }
+        if uplink_cut(now) {
+            if !cut_reported {
+                eprintln!("ground: t={now:.1}s uplink cut (fault injection)");
+                cut_reported = true;
+            }
+        } else if cut_reported {
+            eprintln!("ground: t={now:.1}s uplink restored");
+            cut_reported = false;
+        }
         // Commands are repeated every second (same sequence number: the drones act once), so a
         // lost datagram only delays them.
-        if !command_frames.is_empty() && now - last_command_at >= 1.0 {
+        if !command_frames.is_empty() && now - last_command_at >= 1.0 && !uplink_cut(now) {
             for (id, _) in &drones {
                 uplinks.send(*id, &command_frames)?;
             }
             last_command_at = now;
         }
-        if !matches!(mission.phase(), Phase::WaitingForFleet) {
+        if !matches!(mission.phase(), Phase::WaitingForFleet) && !uplink_cut(now) {
             let inputs = SnapshotInputs {
                 task,
                 herders: &herders,
@@ -416,6 +448,7 @@ fn mission(args: MissionArgs) -> Result<()> {
         "started_at_s": started,
         "ended_at_s": ended,
         "scans": scans,
+        "sensor_silent": sensor_silent,
         "incomplete_scans": assembler.incomplete_scans(),
         "tracks": tracker.confirmed().count(),
         "lost_drones": mission.lost(),

@@ -69,6 +69,9 @@ struct Cli {
     /// Cut drone INDEX's autopilot link for good at simulated time T: INDEX@T.
     #[arg(long)]
     lose_drone: Option<String>,
+    /// Cut the ground's uplink to every drone for DURATION seconds from START (START,DURATION).
+    #[arg(long)]
+    cut_uplink: Option<String>,
     /// Give up this many simulated seconds after the drones start flying
     /// [default: the scenario's step limit].
     #[arg(long)]
@@ -204,8 +207,13 @@ fn main() -> Result<()> {
         .arg(cli.out.join("ground.tlog"))
         .arg("--csv")
         .arg(cli.out.join("ground.csv"))
+        // The ground stops one wall second after the last scan and prints its summary.
+        .args(["--idle-timeout", "1"])
         .stdout(Stdio::piped())
         .stderr(Stdio::inherit());
+    if let Some(cut) = &cli.cut_uplink {
+        ground_cmd.arg("--cut-uplink").arg(cut);
+    }
     for (i, port) in uplink_ports.iter().enumerate() {
         ground_cmd
             .arg("--drone")

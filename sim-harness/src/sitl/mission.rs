@@ -72,7 +72,7 @@ pub struct SitlConfig {
 
 impl SitlConfig {
     /// Defaults for a scenario: 0.1 s ticks and scans, sensor noise from the scenario's sensing
-    /// noise with 95 % detection and no false alarms, 200 ms lockstep wait, as fast as
+    /// noise with 95 % detection and no false alarms, 50 ms lockstep wait, as fast as
     /// possible, the scenario's step limit as time limit.
     pub fn new(scenario: Scenario, seed: u64, ground: SocketAddr) -> Self {
         let sensor = SensorConfig {
@@ -91,7 +91,7 @@ impl SitlConfig {
             signing: None,
             faults: FaultConfig::default(),
             sensor,
-            lockstep_timeout: Duration::from_millis(200),
+            lockstep_timeout: Duration::from_millis(50),
             speed: 0.0,
             pre_flight_pace: Duration::from_millis(10),
             time_limit_s,
@@ -263,18 +263,24 @@ impl SitlWorld {
             .sum()
     }
 
-    /// Keep stepping autopilots at time 0 (no motion) until every one has heard from its
-    /// daemon, or `timeout` of wall time passes; returns whether all did.
+    /// Pre-roll: step the autopilots on the wall clock (the world does not move) until every one
+    /// has heard from its daemon, or `timeout` passes; returns whether all did. Simulated time
+    /// then goes on from the pre-roll's end, so delayed datagrams still fall due.
     pub fn wait_for_daemons(&mut self, timeout: Duration) -> Result<bool, SitlError> {
         let start = Instant::now();
         loop {
             let mut all = true;
+            let now = start.elapsed().as_secs_f64();
             for node in self.nodes.iter_mut().flatten() {
-                node.step(0.0)?;
+                node.step(now)?;
                 all &= node.codec_stats().frames > 0;
             }
             if all {
-                self.wall_start = Instant::now();
+                self.time_s = now;
+                self.next_scan = now;
+                self.wall_start = Instant::now()
+                    - Duration::from_secs_f64(now / self.config.speed.max(1e-9))
+                        .min(start.elapsed());
                 return Ok(true);
             }
             if start.elapsed() > timeout {

@@ -1,0 +1,199 @@
+//! End-to-end software-in-the-loop missions: `skyherd-sitl` (simulator + mock autopilots +
+//! tracking sensor) with `skyherd-ground` and one `skyherd-onboard` per drone as separate
+//! processes, real MAVLink 2 bytes over loopback UDP, the shipped int8 model.
+//!
+//! The binaries are the workspace's own, from the same target folder as this test (`cargo test
+//! --workspace` builds them).
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use serde_json::Value;
+
+fn repo() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .parent()
+        .expect("tests/ sits in the repo")
+        .to_path_buf()
+}
+
+fn binary(name: &str) -> PathBuf {
+    let exe = std::env::current_exe().expect("test executable");
+    // target/<profile>/deps/<test> -> target/<profile>/<name>
+    let dir = exe
+        .parent()
+        .and_then(Path::parent)
+        .expect("target/<profile>");
+    let path = dir.join(name);
+    assert!(
+        path.exists(),
+        "{} is missing: build the workspace binaries (cargo test --workspace does)",
+        path.display()
+    );
+    path
+}
+
+struct Run {
+    result: Value,
+    out: PathBuf,
+    stderr: String,
+}
+
+fn fly(label: &str, args: &[&str]) -> Run {
+    let out = std::env::temp_dir().join(format!("skyherd-e2e-{label}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    // The daemons and the ground are found beside skyherd-sitl.
+    binary("skyherd-ground");
+    binary("skyherd-onboard");
+    let output = Command::new(binary("skyherd-sitl"))
+        .current_dir(repo())
+        .args(["--model", "models/mtddpg-v1.skym", "--out"])
+        .arg(&out)
+        .args(args)
+        .output()
+        .expect("skyherd-sitl runs");
+    let stderr = String::from_utf8_lossy(&output.stderr).into_owned();
+    assert!(
+        output.status.success(),
+        "skyherd-sitl failed: {}\n{stderr}",
+        output.status
+    );
+    let text = std::fs::read_to_string(out.join("result.json")).expect("result.json written");
+    let result: Value = serde_json::from_str(&text).expect("result.json parses");
+    eprintln!("{label}: {result}");
+    Run {
+        result,
+        out,
+        stderr,
+    }
+}
+
+fn daemon_log(run: &Run, drone: usize) -> String {
+    std::fs::read_to_string(run.out.join(format!("daemon-{drone}.log"))).expect("daemon log")
+}
+
+#[test]
+fn indoor_two_drones_drive_four_vehicles_to_the_goal_within_30_s() {
+    let run = fly("indoor", &["--scenario", "indoor"]);
+    let r = &run.result;
+    assert_eq!(r["herders"], 2);
+    assert_eq!(r["targets"], 4);
+    assert_eq!(r["success"], true, "{r}\n{}", run.stderr);
+    let time = r["mission_time_s"].as_f64().expect("a success has a time");
+    assert!(time <= 30.0, "took {time} s");
+    assert_eq!(r["autopilot_failsafes"], 0);
+    // The ground station saw the mission through on its own tracks, and wrote its .tlog.
+    assert_eq!(r["ground"]["outcome"], "complete", "{r}");
+    let tlog = std::fs::metadata(run.out.join("ground.tlog")).expect("tlog");
+    assert!(tlog.len() > 1000);
+    assert!(run.out.join("trajectory.png").exists());
+}
+
+#[test]
+fn packet_loss_and_latency_do_not_breach_the_fence() {
+    let run = fly(
+        "lossy",
+        &[
+            "--scenario",
+            "indoor",
+            "--loss",
+            "0.2",
+            "--latency-ms",
+            "200",
+            "--time-limit",
+            "30",
+        ],
+    );
+    let r = &run.result;
+    assert_ne!(r["ending"], "left_area", "{r}");
+    // Say which way it went: with 20 % loss and 200 ms latency the mission may still finish.
+    eprintln!(
+        "with 20% loss and 200 ms latency: ending {}, success {}",
+        r["ending"], r["success"]
+    );
+    assert!(
+        r["flight_start_s"].is_number(),
+        "the drones never flew: {r}"
+    );
+}
+
+#[test]
+fn a_five_second_uplink_cut_makes_the_drones_hold_then_resume() {
+    let run = fly(
+        "uplink-cut",
+        &["--scenario", "indoor", "--cut-uplink", "3,5", "--seed", "3"],
+    );
+    let r = &run.result;
+    assert_ne!(r["ending"], "left_area", "{r}");
+    for drone in 1..=2 {
+        let log = daemon_log(&run, drone);
+        let hold = log
+            .find("uplink stale")
+            .unwrap_or_else(|| panic!("drone {drone} never held for a stale uplink:\n{log}"));
+        assert!(
+            log[hold..].contains("flying"),
+            "drone {drone} did not resume after the cut:\n{log}"
+        );
+    }
+    assert!(run.stderr.contains("uplink restored"));
+}
+
+#[test]
+fn a_lost_drone_is_noticed_and_the_other_goes_on() {
+    let run = fly(
+        "lost-drone",
+        &[
+            "--scenario",
+            "indoor",
+            "--lose-drone",
+            "1@4",
+            "--time-limit",
+            "20",
+        ],
+    );
+    let r = &run.result;
+    assert_ne!(r["ending"], "left_area", "{r}");
+    assert_eq!(
+        r["ground"]["lost_drones"],
+        serde_json::json!([2]),
+        "the ground must notice drone 2 and only it: {r}"
+    );
+    // Drone 1 kept flying after drone 2 went silent.
+    let log = daemon_log(&run, 1);
+    assert!(log.contains("flying"), "{log}");
+    eprintln!(
+        "one drone lost at t=4 s: ending {}, success {}",
+        r["ending"], r["success"]
+    );
+}
+
+#[test]
+fn the_aarch64_daemon_flies_a_drone_under_qemu() {
+    let Some(daemon) = std::env::var_os("SKYHERD_AARCH64_DAEMON") else {
+        if std::env::var_os("SKYHERD_ALLOW_SKIP").is_some() {
+            eprintln!("SKIPPED: set SKYHERD_AARCH64_DAEMON to the aarch64 skyherd-onboard");
+            return;
+        }
+        panic!(
+            "SKYHERD_AARCH64_DAEMON is not set (scripts/test.sh builds the aarch64 daemon and sets it)"
+        );
+    };
+    let daemon = daemon.to_string_lossy().into_owned();
+    let run = fly(
+        "aarch64",
+        &[
+            "--scenario",
+            "indoor",
+            "--daemon",
+            &daemon,
+            "--daemon-wrapper",
+            "qemu-aarch64 -L /usr/aarch64-linux-gnu",
+            "--time-limit",
+            "10",
+        ],
+    );
+    let r = &run.result;
+    assert!(r["flight_start_s"].is_number(), "never flew: {r}");
+    assert!(r["path_length_m"].as_f64().unwrap_or(0.0) > 0.5, "{r}");
+    assert_ne!(r["ending"], "left_area", "{r}");
+}
