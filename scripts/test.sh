@@ -16,17 +16,21 @@ cargo fmt --all --check
 step "cargo clippy (workspace, all targets, warnings denied)"
 cargo clippy --workspace --all-targets --locked -- -D warnings
 
-step "cargo test (workspace)"
-cargo test --workspace --locked
-
 step "no_std build of the model format and the onboard core for thumbv7em-none-eabihf (no default features)"
 cargo build --locked -p skyherd-model -p skyherd-onboard --no-default-features --target thumbv7em-none-eabihf
+
+step "firmware-shaped example for thumbv7em-none-eabihf, and its size"
+(cd onboard/firmware && cargo build --locked --release --target thumbv7em-none-eabihf)
+llvm-size onboard/firmware/target/thumbv7em-none-eabihf/release/skyherd-firmware-example
 
 step "aarch64 release build of the onboard daemon, run under qemu-aarch64"
 cargo build --locked --release --target aarch64-unknown-linux-gnu -p skyherd-onboard --features std --bin skyherd-onboard
 daemon=target/aarch64-unknown-linux-gnu/release/skyherd-onboard
 file "$daemon" | tee /dev/stderr | grep -q 'ARM aarch64'
 qemu-aarch64 -L /usr/aarch64-linux-gnu "$daemon" self-test
+
+step "cargo test (workspace; the SITL tests fly the aarch64 daemon above under qemu too)"
+SKYHERD_AARCH64_DAEMON="$PWD/$daemon" cargo test --workspace --locked
 
 step "cargo doc (warnings denied)"
 RUSTDOCFLAGS="-D warnings" cargo doc --workspace --no-deps --locked
