@@ -344,7 +344,10 @@ pub fn encode(input: &ObsInput<'_>, out: &mut [f32; FEATURES]) -> Result<LocalFr
     let mut inside = 0usize;
     let mut mine = 0usize;
     let mut my_farthest = (f32::NEG_INFINITY, own);
-    let mut min_wall = f32::INFINITY;
+    // The flock's bounding box gives the smallest target-to-wall distance without a per-target
+    // wall search.
+    let mut lo = [f32::INFINITY; 2];
+    let mut hi = [f32::NEG_INFINITY; 2];
     let mut near_me = 0usize;
     let r2 = input.goal_radius * input.goal_radius;
     for &t in input.targets {
@@ -377,7 +380,8 @@ pub fn encode(input: &ObsInput<'_>, out: &mut [f32; FEATURES]) -> Result<LocalFr
                 my_farthest = (to_goal2, t);
             }
         }
-        min_wall = min_wall.min(nearest_wall(t, input.area).0);
+        lo = [lo[0].min(t[0]), lo[1].min(t[1])];
+        hi = [hi[0].max(t[0]), hi[1].max(t[1])];
     }
     let centroid = if n > 0 {
         [sum[0] / n as f32, sum[1] / n as f32]
@@ -447,6 +451,11 @@ pub fn encode(input: &ObsInput<'_>, out: &mut [f32; FEATURES]) -> Result<LocalFr
         for (k, &count) in octants.iter().enumerate() {
             out[33 + k] = count as f32 / n as f32;
         }
+        let min_wall = lo[0]
+            .min(lo[1])
+            .min(input.area[0] - hi[0])
+            .min(input.area[1] - hi[1])
+            .max(0.0);
         out[44] = soft(min_wall * inv_r);
         out[45] = near_me as f32 / n as f32;
     }
