@@ -1,8 +1,9 @@
 //! The run's CSV log (returns, losses, evaluation metrics) and its learning-curve PNG.
 //!
-//! The plot has no text (no font is bundled with the workspace yet): the top panel shows the
-//! recent training success rate (blue) and the held-out evaluation success rate (red dots),
-//! the bottom panel the recent mean learner return per episode (green), against wall time.
+//! The top panel shows the recent training success rate (blue) and the held-out evaluation
+//! success rate (red dots), the bottom panel the recent mean learner return per episode
+//! (green), against wall time. Text uses the DejaVu Sans font the simulator ships
+//! (`sim-harness/assets`), compiled in from there.
 
 use std::fs::{File, OpenOptions};
 use std::io::{BufRead, BufReader, Write};
@@ -120,8 +121,20 @@ pub fn read_log(path: &Path) -> Result<Vec<LogRow>, ReportError> {
     Ok(rows)
 }
 
+const FONT: &[u8] = include_bytes!("../../sim-harness/assets/DejaVuSans.ttf");
+const FAMILY: &str = "sans-serif";
+
+fn register_font() {
+    static ONCE: std::sync::Once = std::sync::Once::new();
+    ONCE.call_once(|| {
+        // A failure only loses the labels; the font is known to parse.
+        let _ = plotters::style::register_font(FAMILY, FontStyle::Normal, FONT);
+    });
+}
+
 /// Draws the learning curve of `rows` into a PNG at `path`.
 pub fn plot_curve(rows: &[LogRow], path: &Path) -> Result<(), ReportError> {
+    register_font();
     let err = |e: &dyn std::fmt::Display| ReportError::Plot(e.to_string());
     let root = BitMapBackend::new(path, (900, 600)).into_drawing_area();
     root.fill(&WHITE).map_err(|e| err(&e))?;
@@ -131,15 +144,19 @@ pub fn plot_curve(rows: &[LogRow], path: &Path) -> Result<(), ReportError> {
 
     let mut chart = ChartBuilder::on(&top)
         .margin(10)
-        .x_label_area_size(5)
-        .y_label_area_size(5)
+        .caption(
+            "success: training episodes (blue), held-out evaluation (red)",
+            (FAMILY, 16),
+        )
+        .x_label_area_size(30)
+        .y_label_area_size(45)
         .build_cartesian_2d(0.0..t_max, 0.0..1.05)
         .map_err(|e| err(&e))?;
     chart
         .configure_mesh()
         .disable_x_mesh()
-        .x_labels(0)
-        .y_labels(0)
+        .y_desc("success rate")
+        .label_style((FAMILY, 12))
         .draw()
         .map_err(|e| err(&e))?;
     chart
@@ -170,15 +187,17 @@ pub fn plot_curve(rows: &[LogRow], path: &Path) -> Result<(), ReportError> {
     };
     let mut chart = ChartBuilder::on(&bottom)
         .margin(10)
-        .x_label_area_size(5)
-        .y_label_area_size(5)
+        .caption("mean learner return per training episode", (FAMILY, 16))
+        .x_label_area_size(35)
+        .y_label_area_size(45)
         .build_cartesian_2d(0.0..t_max, lo..hi)
         .map_err(|e| err(&e))?;
     chart
         .configure_mesh()
         .disable_x_mesh()
-        .x_labels(0)
-        .y_labels(0)
+        .x_desc("wall time (s)")
+        .y_desc("return")
+        .label_style((FAMILY, 12))
         .draw()
         .map_err(|e| err(&e))?;
     chart

@@ -4,6 +4,7 @@
 //! skyherd-trainer train  --config trainer/configs/mtddpg-v1.toml [--resume]
 //! skyherd-trainer export --checkpoint runs/mtddpg-v1/best.safetensors --out models/mtddpg-v1.skym
 //! skyherd-trainer eval   --model models/mtddpg-v1.skym --episodes 20 --baselines
+//! skyherd-trainer plot   --log runs/mtddpg-v1/log.csv --out runs/mtddpg-v1/curve.png
 //! ```
 
 use std::path::PathBuf;
@@ -60,6 +61,15 @@ enum Command {
         /// Also write the float actor here (the reference the parity test compares against).
         #[arg(long)]
         actor_out: Option<PathBuf>,
+    },
+    /// Redraw the learning-curve PNG of a training log.
+    Plot {
+        /// The run's `log.csv`.
+        #[arg(long)]
+        log: PathBuf,
+        /// The PNG to write.
+        #[arg(long)]
+        out: PathBuf,
     },
     /// Evaluate an int8 model file (as it flies) and optionally the baselines, with test noise.
     Eval {
@@ -222,6 +232,10 @@ fn main() -> Result<()> {
                 "parity on {} held-out observations: RMS {:.4} per component, {:.4} per vector, max {:.4} (units of max speed)",
                 p.samples, p.rms_component, p.rms_vector, p.max_component
             );
+        }
+        Command::Plot { log, out } => {
+            skyherd_trainer::report::plot_curve(&skyherd_trainer::report::read_log(&log)?, &out)?;
+            println!("wrote {}", out.display());
         }
         Command::Eval {
             model,
