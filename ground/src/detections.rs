@@ -29,6 +29,30 @@ use mavlink::dialects::common::{DEBUG_VECT_DATA, MavMessage};
 pub const DETECTION_NAME: &str = "det";
 /// `DEBUG_VECT` name of the message that closes a scan.
 pub const SCAN_END_NAME: &str = "det_end";
+/// `DEBUG_VECT` name of the ground's answer once it has acted on a scan (tracked, sent the
+/// snapshots up): a simulator waits for it to keep the ground in lockstep.
+pub const SCAN_ACK_NAME: &str = "det_ack";
+
+/// The ground's acknowledgement of the scan taken at `time_s`.
+pub fn scan_ack(time_s: f64) -> MavMessage {
+    MavMessage::DEBUG_VECT(DEBUG_VECT_DATA {
+        time_usec: (time_s.max(0.0) * 1e6).round() as u64,
+        x: 0.0,
+        y: 0.0,
+        z: 0.0,
+        name: SCAN_ACK_NAME.into(),
+    })
+}
+
+/// The scan time (s) a message acknowledges, if it is a scan acknowledgement.
+pub fn acknowledged_scan(message: &MavMessage) -> Option<f64> {
+    match message {
+        MavMessage::DEBUG_VECT(v) if v.name.to_str() == Ok(SCAN_ACK_NAME) => {
+            Some(v.time_usec as f64 / 1e6)
+        }
+        _ => None,
+    }
+}
 
 /// The messages reporting one scan at `time_s` (seconds of the sensor's clock).
 pub fn scan_messages(time_s: f64, detections: &[[f64; 2]]) -> Vec<MavMessage> {
@@ -124,6 +148,16 @@ impl ScanAssembler {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn acknowledgements_round_trip_and_are_not_detections() {
+        let ack = scan_ack(12.3);
+        assert_eq!(acknowledged_scan(&ack), Some(12.3));
+        assert_eq!(acknowledged_scan(&scan_messages(1.0, &[])[0]), None);
+        let mut assembler = ScanAssembler::default();
+        assert_eq!(assembler.push(&ack), None);
+        assert_eq!(assembler.ignored(), 1);
+    }
 
     #[test]
     fn a_lost_detection_gives_an_incomplete_scan() {

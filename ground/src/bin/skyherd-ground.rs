@@ -20,7 +20,7 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand, ValueEnum};
 use mavlink::dialects::common::MavMessage;
-use skyherd_ground::detections::ScanAssembler;
+use skyherd_ground::detections::{ScanAssembler, scan_ack};
 use skyherd_ground::link::codec::{Signing, SigningKey};
 use skyherd_ground::link::{GroundLink, LinkConfig};
 use skyherd_ground::mission::{
@@ -410,6 +410,9 @@ fn mission(args: MissionArgs) -> Result<()> {
                 uplinks.send(*id, &frames)?;
             }
         }
+        // Tell the sensor (a simulator keeps lockstep with it) that this scan is dealt with.
+        // (A sensor that never spoke has no address yet; a real one need not listen.)
+        let _ = fleet.send_to(args.sensor_system_id, &scan_ack(scan.time_s));
         if let Some(w) = &mut csv {
             write!(
                 w,

@@ -12,7 +12,9 @@
 //!    `DEBUG_VECT`, see `skyherd_ground::detections`) to the ground station;
 //! 4. **lockstep**: every drone whose daemon is streaming setpoints is waited for (up to
 //!    [`SitlConfig::lockstep_timeout`] of wall time) until it has answered this tick's position,
-//!    so the loop runs as fast as the processes allow and never outruns them.
+//!    so the loop runs as fast as the processes allow and never outruns them; likewise the
+//!    ground station's acknowledgement of the latest scan (`det_ack`), so the snapshots the
+//!    drones fly on are as fresh as the world.
 //!
 //! The world is integrated with the tick as its time step: for the `indoor` preset that is the
 //! scenario's own 0.1 s; for the paper presets (1 s steps) it integrates the same velocity field
@@ -22,8 +24,8 @@ use std::net::{SocketAddr, UdpSocket};
 use std::thread;
 use std::time::{Duration, Instant};
 
-use skyherd_ground::detections::scan_messages;
-use skyherd_ground::link::codec::{Codec, Signing};
+use skyherd_ground::detections::{acknowledged_scan, scan_messages};
+use skyherd_ground::link::codec::{Codec, Frame, Signing};
 use skyherd_onboard::frame::{ned_to_sim, sim_to_ned};
 use thiserror::Error;
 
@@ -157,6 +159,9 @@ pub struct SitlWorld {
     actions: Vec<[f64; 3]>,
     wall_start: Instant,
     lockstep_misses: u64,
+    ground_acking: bool,
+    acked_scan: f64,
+    ack_frames: Vec<Frame>,
 }
 
 impl std::fmt::Debug for SitlWorld {
@@ -195,6 +200,7 @@ impl SitlWorld {
         }
         let sensor = DetectionSensor::new(config.sensor.clone(), config.seed ^ 0x5EA5_0000)?;
         let sensor_socket = UdpSocket::bind("127.0.0.1:0")?;
+        sensor_socket.set_nonblocking(true)?;
         let sensor_codec = Codec::new(SENSOR_SYSTEM_ID, 1, config.signing.clone());
         let herders = world.herders.len();
         Ok(Self {
@@ -213,6 +219,9 @@ impl SitlWorld {
             actions: vec![[0.0; 3]; herders],
             wall_start: Instant::now(),
             lockstep_misses: 0,
+            ground_acking: false,
+            acked_scan: f64::NEG_INFINITY,
+            ack_frames: Vec::new(),
         })
     }
 
@@ -356,6 +365,7 @@ impl SitlWorld {
             }
         }
         self.time_s = t;
+        self.wait_for_ground()?;
         // The truth decides the episode.
         if self.ending.is_none() {
             if self.world.anything_outside() {
@@ -385,6 +395,42 @@ impl SitlWorld {
             flying,
             ending: self.ending.map(|(e, _)| e),
         })
+    }
+
+    /// Once the ground station acknowledges scans, wait (up to the lockstep timeout) until it
+    /// has acted on the latest scan, so its snapshots are as fresh as the world.
+    fn wait_for_ground(&mut self) -> Result<(), SitlError> {
+        let start = Instant::now();
+        let mut buffer = [0u8; 512];
+        loop {
+            loop {
+                match self.sensor_socket.recv_from(&mut buffer) {
+                    Ok((n, _)) => {
+                        self.ack_frames.clear();
+                        self.sensor_codec.decode(&buffer[..n], &mut self.ack_frames);
+                        for frame in &self.ack_frames {
+                            if let Some(at) = acknowledged_scan(&frame.message) {
+                                self.ground_acking = true;
+                                self.acked_scan = self.acked_scan.max(at);
+                            }
+                        }
+                    }
+                    Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => break,
+                    Err(e) if e.kind() == std::io::ErrorKind::ConnectionRefused => break,
+                    Err(e) => return Err(e.into()),
+                }
+            }
+            // Scans are stamped to the microsecond.
+            let scanned = self.next_scan - self.config.sensor_period_s;
+            if !self.ground_acking || self.acked_scan >= scanned - 1e-6 {
+                return Ok(());
+            }
+            if start.elapsed() > self.config.lockstep_timeout {
+                self.lockstep_misses += 1;
+                return Ok(());
+            }
+            thread::sleep(Duration::from_micros(50));
+        }
     }
 
     /// Returns whether every live drone is streaming.
