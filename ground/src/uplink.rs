@@ -73,6 +73,7 @@ pub struct UplinkEncoder {
     snapshot_sequence: u32,
     command_sequence: u32,
     message_id: u16,
+    last_command: Option<MissionCommand>,
     buffer: Box<[u8; MAX_MESSAGE]>,
 }
 
@@ -98,6 +99,7 @@ impl UplinkEncoder {
             snapshot_sequence: 0,
             command_sequence: 0,
             message_id: 0,
+            last_command: None,
             buffer: Box::new([0; MAX_MESSAGE]),
         }
     }
@@ -145,7 +147,19 @@ impl UplinkEncoder {
             goal_radius,
             action,
         };
+        self.last_command = Some(command);
         self.frames(&Uplink::Command(command), target_system)
+    }
+
+    /// The last command again, same sequence number (a drone acts on it once) but a new chunk
+    /// message id: the drone's reassembler drops chunks of messages older than the newest it has
+    /// seen, and snapshots have been sent since. `None` before any command.
+    pub fn repeat_command(
+        &mut self,
+        target_system: u8,
+    ) -> Option<Result<Vec<MavMessage>, UplinkError>> {
+        let command = self.last_command?;
+        Some(self.frames(&Uplink::Command(command), target_system))
     }
 
     fn frames(
@@ -244,6 +258,43 @@ mod tests {
             assert_eq!(c.sequence, expected);
             assert_eq!(c.action, MissionAction::Start);
         }
+    }
+
+    #[test]
+    fn a_repeated_command_survives_snapshots_sent_in_between() {
+        let mut uplink = UplinkEncoder::new();
+        assert!(uplink.repeat_command(0).is_none());
+        let first = uplink
+            .command(Task::Driving, [1.0, 2.0], 3.0, MissionAction::Start, 0)
+            .unwrap();
+        let inputs = SnapshotInputs {
+            task: Task::Driving,
+            herders: &[[0.0; 3]],
+            targets: &[[1.0, 1.0]],
+            goal: [1.0, 2.0],
+            goal_radius: 3.0,
+            area: [10.0, 10.0, 3.0],
+            max_speed: 1.0,
+            timestamp_ms: 0,
+        };
+        let snapshot = uplink.snapshot(&inputs, 0).unwrap();
+        let again = uplink.repeat_command(0).unwrap().unwrap();
+        // A drone that missed the first command hears the snapshot, then the repeat.
+        let mut reassembler = Reassembler::new();
+        let mut got = Vec::new();
+        for frame in snapshot.iter().chain(&again) {
+            let MavMessage::TUNNEL(t) = frame else {
+                unreachable!()
+            };
+            if let Ok(Some(bytes)) = reassembler.push(&t.payload[..usize::from(t.payload_length)]) {
+                got.push(decode_uplink(bytes).unwrap());
+            }
+        }
+        let Some(Uplink::Command(c)) = got.last() else {
+            panic!("the repeat was dropped: {got:?}")
+        };
+        assert_eq!(c.sequence, 1, "same command, same sequence");
+        assert_ne!(first, again, "new chunk message id");
     }
 
     #[test]

@@ -39,7 +39,14 @@ struct Run {
     stderr: String,
 }
 
+/// One mission at a time: each runs several processes in lockstep, and two at once on a 2-core
+/// machine would only measure the scheduler.
+static ONE_MISSION_AT_A_TIME: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
 fn fly(label: &str, args: &[&str]) -> Run {
+    let _turn = ONE_MISSION_AT_A_TIME
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
     let out = std::env::temp_dir().join(format!("skyherd-e2e-{label}-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&out);
     // The daemons and the ground are found beside skyherd-sitl.

@@ -388,11 +388,18 @@ fn mission(args: MissionArgs) -> Result<()> {
         }
         // Commands are repeated every second (same sequence number: the drones act once), so a
         // lost datagram only delays them.
-        if !command_frames.is_empty() && now - last_command_at >= 1.0 && !uplink_cut(now) {
-            for (id, _) in &drones {
-                uplinks.send(*id, &command_frames)?;
+        if now - last_command_at >= 1.0 && !uplink_cut(now) {
+            if last_command_at.is_finite()
+                && let Some(repeat) = uplink.repeat_command(0)
+            {
+                command_frames = repeat?;
             }
-            last_command_at = now;
+            if !command_frames.is_empty() {
+                for (id, _) in &drones {
+                    uplinks.send(*id, &command_frames)?;
+                }
+                last_command_at = now;
+            }
         }
         if !matches!(mission.phase(), Phase::WaitingForFleet) && !uplink_cut(now) {
             let inputs = SnapshotInputs {

@@ -273,8 +273,9 @@ fn main() -> Result<()> {
     let mut next_print = 0.0;
     let mut ended_at = None;
     let grace_s = 3.0;
-    // Before flight the clock may run far ahead of a mission that never starts: bound it.
-    let start_limit_s = 60.0;
+    // A mission that never takes off (daemons that cannot arm, a ground that never starts) is
+    // bounded in wall time: slow hosts (a daemon under qemu) need seconds to get going.
+    let start_limit = Duration::from_secs(60);
     loop {
         let report = sitl.tick()?;
         let t = report.time_s;
@@ -303,8 +304,11 @@ fn main() -> Result<()> {
         if ended_at.is_some_and(|e| t - e >= grace_s) {
             break;
         }
-        if sitl.flight_start().is_none() && t > start_limit_s {
-            eprintln!("sitl: no drone took off within {start_limit_s} s of simulated time");
+        if sitl.flight_start().is_none() && wall.elapsed() > start_limit {
+            eprintln!(
+                "sitl: the drones did not all take off within {} s of wall time",
+                start_limit.as_secs()
+            );
             break;
         }
     }
