@@ -72,10 +72,10 @@ struct Cli {
     /// Cut the ground's uplink to every drone for DURATION seconds from START (START,DURATION).
     #[arg(long)]
     cut_uplink: Option<String>,
-    /// Give up this many simulated seconds after the drones start flying
-    /// [default: the scenario's step limit].
-    #[arg(long)]
-    time_limit: Option<f64>,
+    /// Give up this many simulated seconds after the drones start flying. A mission's abort
+    /// limit is mission control's choice, not the scenario's training-episode step limit.
+    #[arg(long, default_value_t = 300.0)]
+    time_limit: f64,
 }
 
 /// A child process that is killed when dropped.
@@ -149,9 +149,10 @@ fn main() -> Result<()> {
         latency: cli.latency_ms / 1000.0,
         cuts: Vec::new(),
     };
-    if let Some(limit) = cli.time_limit {
-        config.time_limit_s = limit;
+    if !(cli.time_limit.is_finite() && cli.time_limit > 0.0) {
+        bail!("--time-limit must be a positive number of seconds");
     }
+    config.time_limit_s = cli.time_limit;
     if let Some(spec) = &cli.lose_drone {
         let (index, at) = spec
             .split_once('@')
