@@ -21,16 +21,16 @@ cargo build --locked -p skyherd-model -p skyherd-onboard --no-default-features -
 
 step "firmware-shaped example for thumbv7em-none-eabihf, and its size"
 (cd onboard/firmware && cargo build --locked --release --target thumbv7em-none-eabihf)
-llvm-size onboard/firmware/target/thumbv7em-none-eabihf/release/skyherd-firmware-example
+llvm-size "${CARGO_TARGET_DIR:-onboard/firmware/target}/thumbv7em-none-eabihf/release/skyherd-firmware-example"
 
 step "aarch64 release build of the onboard daemon, run under qemu-aarch64"
 cargo build --locked --release --target aarch64-unknown-linux-gnu -p skyherd-onboard --features std --bin skyherd-onboard
-daemon=target/aarch64-unknown-linux-gnu/release/skyherd-onboard
+daemon="${CARGO_TARGET_DIR:-$PWD/target}/aarch64-unknown-linux-gnu/release/skyherd-onboard"
 file "$daemon" | tee /dev/stderr | grep -q 'ARM aarch64'
 qemu-aarch64 -L /usr/aarch64-linux-gnu "$daemon" self-test
 
 step "cargo test (workspace; the SITL tests fly the aarch64 daemon above under qemu too)"
-SKYHERD_AARCH64_DAEMON="$PWD/$daemon" cargo test --workspace --locked
+SKYHERD_AARCH64_DAEMON="$daemon" cargo test --workspace --locked
 
 step "cargo doc (warnings denied)"
 RUSTDOCFLAGS="-D warnings" cargo doc --workspace --no-deps --locked
