@@ -15,7 +15,7 @@ fn inspect_and_validate() {
     assert!(out.status.success());
     let text = String::from_utf8(out.stdout).unwrap();
     assert!(
-        text.contains("encoder: v2, 46 features; hidden 32 x 2 shared layers"),
+        text.contains("encoder: v3, 46 features; hidden 32 x 2 shared layers"),
         "{text}"
     );
     assert!(text.contains("output[Collecting]"), "{text}");

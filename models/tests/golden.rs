@@ -6,7 +6,7 @@ use std::path::PathBuf;
 
 use skyherd_model::{ActorShape, FloatActor, ModelMeta, SplitMix64, Task, decode, quantize};
 
-/// The golden model's shape: the onboard encoder's 46 features (encoder v2), 32 hidden units,
+/// The golden model's shape: the onboard encoder's 46 features (encoder v3), 32 hidden units,
 /// two shared layers. Its weights are seeded random numbers, not trained.
 pub const GOLDEN_SHAPE: ActorShape = ActorShape {
     features: 46,
@@ -27,7 +27,7 @@ fn golden_model() -> Vec<u8> {
         })
         .collect();
     let meta = ModelMeta {
-        encoder_version: 2,
+        encoder_version: 3,
         max_speed: 5.0,
     };
     quantize(&actor, meta, calibration.iter().map(|(t, f)| (*t, &f[..]))).unwrap()
@@ -54,7 +54,7 @@ fn seeded_model_bytes_are_pinned() {
     let header: [u8; 32] = [
         b'S', b'K', b'Y', b'M', 1, 0, 32, 0,   // magic, format version, header length
         0, 0, 0, 0,                            // file length (checked below)
-        2, 0, 46, 0, 32, 0,                    // encoder v2, 46 features, hidden 32
+        3, 0, 46, 0, 32, 0,                    // encoder v3, 46 features, hidden 32
         2, 2, 3, 0, 0, 0,                      // 2 tasks, 2 shared layers, 3 actions, reserved
         0x00, 0x00, 0xa0, 0x40,                // max speed 5.0 m/s
         0, 0, 0, 0,                            // reserved

@@ -23,7 +23,7 @@ fn main() {
     let calibration: Vec<(Task, Vec<f32>)> = (0..256)
         .map(|i| (Task::ALL[i % 2], (0..46).map(|_| rng.uniform(-2.0, 2.0) as f32).collect()))
         .collect();
-    let meta = ModelMeta { encoder_version: 2, max_speed: 5.0 }; // skyherd_onboard::obs::ENCODER_VERSION
+    let meta = ModelMeta { encoder_version: 3, max_speed: 5.0 }; // skyherd_onboard::obs::ENCODER_VERSION
     let bytes = quantize(
         &FloatActor::random(shape, 42),
         meta,

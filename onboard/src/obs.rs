@@ -37,7 +37,7 @@
 //! | 17-18 | the point behind the whole flock (centroid + (radius + standoff) away from the goal), relative |
 //! | 19-20 | nearest target, relative |
 //! | 21 | its distance, `sc(d / R)` |
-//! | 22 | own altitude / ceiling |
+//! | 22 | own altitude, `sc(z / R)` |
 //! | 23-24 | nearest other herder, relative (zero when alone) |
 //! | 25 | its distance, `sc(d / R)` (zero when alone) |
 //! | 26 | 1 when there are other herders, else 0 |
@@ -83,7 +83,12 @@ use libm::{logf, sqrtf};
 /// v2 replaced v1's feature 45 (speed limit per goal radius per *second*), which differs
 /// between the paper arena (1 s steps) and the scaled indoor room (0.1 s steps) although the
 /// two worlds are the same map; v2 has no feature that depends on the time step.
-pub const ENCODER_VERSION: u16 = 2;
+///
+/// v3 measures the drone's altitude (feature 22) in goal radii instead of as a fraction of the
+/// ceiling: a room's 3 m ceiling does not shrink with the rest of the world, so under v2 a
+/// policy trained in the 10 m-high paper arena flew at 0.6 m indoors, 15 goal radii higher (and
+/// so much weaker, eq 6 follows the 3-D distance) than the 2 m it learned.
+pub const ENCODER_VERSION: u16 = 3;
 
 /// Length of the feature vector.
 pub const FEATURES: usize = 46;
@@ -459,7 +464,7 @@ pub fn encode(input: &ObsInput<'_>, out: &mut [f32; FEATURES]) -> Result<LocalFr
         out[44] = soft(min_wall * inv_r);
         out[45] = near_me as f32 / n as f32;
     }
-    out[22] = (own3[2] / input.area[2]).clamp(0.0, 1.0);
+    out[22] = soft(own3[2].max(0.0) * inv_r);
 
     // Other herders.
     if m > 1 {
@@ -619,6 +624,31 @@ mod tests {
         let va = fa.action_to_world([0.3, -0.7, 0.1]);
         let vb = fb.action_to_world([0.3, -0.7, 0.1]);
         assert!((vb[0] - -va[1]).abs() < 1e-4 && (vb[1] - va[0]).abs() < 1e-4);
+    }
+
+    #[test]
+    fn zooming_the_world_leaves_the_features_unchanged() {
+        // The indoor room is the paper arena zoomed by 1/50 in length, except for the ceiling
+        // (3 m, not 0.2 m): the features, altitude included, must not see the difference.
+        let herders = [[100.0, 100.0, 2.0], [200.0, 90.0, 3.0]];
+        let targets = scatter(40, 5, [150.0, 150.0], 30.0);
+        let s = 1.0 / 50.0;
+        let zoomed_herders = herders.map(|h| [h[0] * s, h[1] * s, h[2] * s]);
+        let zoomed_targets = targets.map(|t| [t[0] * s, t[1] * s]);
+        for own in 0..2 {
+            let (paper, _) = encode_ok(&input(&herders, &targets[..40], own));
+            let room = ObsInput {
+                goal: [400.0 * s, 380.0 * s],
+                goal_radius: 45.0 * s,
+                area: [10.0, 10.0, 3.0],
+                max_speed: 1.0,
+                ..input(&zoomed_herders, &zoomed_targets[..40], own)
+            };
+            let (zoomed, _) = encode_ok(&room);
+            for (k, (a, b)) in paper.iter().zip(&zoomed).enumerate() {
+                assert!((a - b).abs() < 1e-4, "feature {k}: paper {a}, room {b}");
+            }
+        }
     }
 
     #[test]

@@ -381,6 +381,101 @@ pub fn to_markdown(results: &[ConfigResult]) -> String {
     out
 }
 
+/// How one method fared against the best of the others in one configuration.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Comparison<'a> {
+    /// The method under test.
+    pub method: &'a ConfigResult,
+    /// The best other method here: highest success rate, then lowest mean time ratio.
+    pub best_other: Option<&'a ConfigResult>,
+}
+
+impl Comparison<'_> {
+    /// Whether both methods solved at least one episode, so times and paths compare.
+    pub fn both_succeed(&self) -> bool {
+        self.method.successes > 0 && self.best_other.is_some_and(|b| b.successes > 0)
+    }
+
+    /// Mean time ratio of the method over the best other's (< 1: faster), where both succeed.
+    pub fn time_vs_best(&self) -> Option<f64> {
+        let b = self.best_other?;
+        Some(self.method.mean_time_s? / b.mean_time_s?)
+    }
+
+    /// Mean path length of the method over the best other's (< 1: shorter), where both succeed.
+    pub fn path_vs_best(&self) -> Option<f64> {
+        let b = self.best_other?;
+        Some(self.method.mean_path_m? / b.mean_path_m?)
+    }
+}
+
+/// For every configuration `method` ran, the best of the other methods in the same
+/// ⟨task, M setting, N⟩ (by success rate, then time ratio).
+pub fn compare<'a>(results: &'a [ConfigResult], method: &str) -> Vec<Comparison<'a>> {
+    let rank = |r: &ConfigResult| (r.success_rate, -r.mean_time_ratio.unwrap_or(f64::INFINITY));
+    results
+        .iter()
+        .filter(|r| r.config.method == method)
+        .map(|m| {
+            let best_other = results
+                .iter()
+                .filter(|o| {
+                    o.config.method != method
+                        && o.config.task == m.config.task
+                        && o.config.herders == m.config.herders
+                        && o.config.targets == m.config.targets
+                })
+                .max_by(|a, b| {
+                    rank(a)
+                        .partial_cmp(&rank(b))
+                        .unwrap_or(std::cmp::Ordering::Equal)
+                });
+            Comparison {
+                method: m,
+                best_other,
+            }
+        })
+        .collect()
+}
+
+/// A markdown table of [`compare`]: the method beside the best other method per configuration,
+/// with time and path relative to it where both succeed.
+pub fn comparison_markdown(results: &[ConfigResult], method: &str) -> String {
+    let mut out = format!(
+        "| task | M | N | {method} success | {method} time s | {method} path m | {method} ratio | best other | its success | its time s | its path m | its ratio | time vs best | path vs best |\n|---|---|---|---:|---:|---:|---:|---|---:|---:|---:|---:|---:|---:|\n"
+    );
+    let cells = |r: &ConfigResult| {
+        format!(
+            "{:.0}% | {} | {} | {}",
+            100.0 * r.success_rate,
+            opt(r.mean_time_s, 0).or_dash(),
+            opt(r.mean_path_m, 0).or_dash(),
+            opt(r.mean_time_ratio, 2).or_dash(),
+        )
+    };
+    for c in compare(results, method) {
+        let m = c.method;
+        let label = if m.config.herders.0.to_string() == m.herder_count.to_string() {
+            m.herder_count.to_string()
+        } else {
+            format!("{} ({})", m.config.herders.0, m.herder_count)
+        };
+        let other = c.best_other.map_or_else(
+            || "– | | | | ".to_owned(),
+            |b| format!("{} | {}", b.config.method, cells(b)),
+        );
+        out.push_str(&format!(
+            "| {} | {label} | {} | {} | {other} | {} | {} |\n",
+            task_name(m.config.task),
+            m.config.targets,
+            cells(m),
+            opt(c.time_vs_best(), 2).or_dash(),
+            opt(c.path_vs_best(), 2).or_dash(),
+        ));
+    }
+    out
+}
+
 trait OrDash {
     fn or_dash(self) -> String;
 }
@@ -435,6 +530,52 @@ mod tests {
         for c in &all {
             assert!(union.contains(c));
         }
+    }
+
+    #[test]
+    fn comparison_picks_the_most_successful_then_fastest_other_method() {
+        let s = Scenario::paper_drive();
+        let result = |method: &str, successes: usize, time_s: f64, path_m: f64| {
+            let ep = |i: usize| EpisodeSummary {
+                seed: 0,
+                success: i < successes,
+                left_area: false,
+                steps: time_s as u64,
+                time_s,
+                path_length: path_m,
+                lower_bound_s: 50.0,
+                return_total: 0.0,
+                paper_return_total: 0.0,
+            };
+            let eps: Vec<EpisodeSummary> = (0..4).map(ep).collect();
+            let cfg = EvalConfig {
+                task: Task::Driving,
+                method: method.into(),
+                herders: HerderSetting(HerderCount::Fixed(4)),
+                targets: 16,
+            };
+            summarize(cfg, &s, &eps)
+        };
+        let results = [
+            result("model", 4, 100.0, 1000.0),
+            result("slow", 4, 300.0, 900.0),
+            result("fast", 4, 200.0, 2000.0),
+            result("faster-but-flaky", 2, 50.0, 100.0),
+        ];
+        let c = compare(&results, "model");
+        assert_eq!(c.len(), 1);
+        assert_eq!(
+            c[0].best_other.map(|b| b.config.method.as_str()),
+            Some("fast")
+        );
+        assert!(c[0].both_succeed());
+        assert_eq!(c[0].time_vs_best(), Some(0.5));
+        assert_eq!(c[0].path_vs_best(), Some(0.5));
+        let md = comparison_markdown(&results, "model");
+        assert!(
+            md.contains("| driving | 4 | 16 | 100% | 100 | 1000 | 2.00 | fast | 100% | 200 | 2000 | 4.00 | 0.50 | 0.50 |"),
+            "{md}"
+        );
     }
 
     #[test]

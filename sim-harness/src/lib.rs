@@ -13,6 +13,7 @@
 //! * [`baseline`]: rule-based herders (Strömbom, control-tutor, Lama & di Bernardo, farthest
 //!   targets).
 //! * [`eval`]: the paper's evaluation sweep and its reports; [`plot`]: Fig. 3 and Fig. 4 plots.
+//! * [`learned`]: a learned actor (an int8 model file through the onboard `Actor`) as a policy.
 //! * [`obs`]: f64 world -> the onboard encoder's f32 input (the one encoder the drone runs).
 //! * [`trace`]: the JSON state schema of `skyherd-sim step` and of run traces.
 //!
@@ -34,6 +35,7 @@
 pub mod baseline;
 pub mod env;
 pub mod eval;
+pub mod learned;
 pub mod noise;
 pub mod obs;
 pub mod plot;

@@ -12,13 +12,13 @@ use rand_distr::{Distribution, Normal};
 use skyherd_model::Task;
 use skyherd_onboard::obs::{FEATURES, LocalFrame};
 use skyherd_sim::baseline::{Method, RulePolicy};
+use skyherd_sim::obs::EncoderBuffers;
 use skyherd_sim::policy::act_all;
 use skyherd_sim::{Env, EnvError, HerderCount, Policy, RewardCorrection, Scenario, StepOutcome};
 
 use crate::config::{RewardConfig, TrainConfig};
 use crate::ddpg::ACTION_DIM;
 use crate::network::{MultiTaskMlp, Tape};
-use crate::policy::Observer;
 use crate::replay::ReplayBuffer;
 
 /// One training scenario: task, N and M (0 = adaptive).
@@ -116,7 +116,7 @@ struct Slot {
 /// Environments stepped together; slot `i` always runs task `i % 2`.
 pub struct Rollouts {
     slots: Vec<Slot>,
-    observer: Observer,
+    observer: EncoderBuffers,
     rng: ChaCha8Rng,
     reward: RewardConfig,
     gamma: f64,
@@ -126,14 +126,14 @@ pub struct Rollouts {
     pub env_steps: u64,
 }
 
-fn observe(observer: &mut Observer, slot: &mut Slot) {
+fn observe(observer: &mut EncoderBuffers, slot: &mut Slot) {
     let world = slot.env.observation();
-    observer.load(world, true);
+    observer.fill(world);
     let m = world.herders.len();
     slot.features.resize(m, [0.0; FEATURES]);
     slot.frames.resize(m, None);
     for h in 0..m {
-        slot.frames[h] = observer.encode(world, h, &mut slot.features[h]).ok();
+        slot.frames[h] = observer.encode(h, &mut slot.features[h]).ok();
     }
 }
 
@@ -147,7 +147,7 @@ impl Rollouts {
     ) -> Result<Rollouts, EnvError> {
         let mut r = Rollouts {
             slots: Vec::with_capacity(count),
-            observer: Observer::default(),
+            observer: EncoderBuffers::default(),
             rng,
             reward: config.reward.clone(),
             gamma: f64::from(config.ddpg.gamma),

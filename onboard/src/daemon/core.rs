@@ -873,7 +873,7 @@ mod tests {
 
     #[test]
     fn own_position_comes_from_the_autopilot_not_the_snapshot() {
-        /// Records feature 22, own altitude / ceiling.
+        /// Records feature 22, own altitude `ln(1 + z / R)`.
         struct Altitude(f32);
         impl Policy for Altitude {
             fn act(&mut self, _task: Task, features: &[f32; FEATURES]) -> [f32; 3] {
@@ -889,7 +889,8 @@ mod tests {
         c.on_uplink(Millis(0), snapshot(1));
         assert_eq!(c.tick(Millis(0)).status, Status::Flying(Reasons::NONE));
         assert!(
-            (c.policy.0 - 0.4).abs() < 1e-6,
+            // 4 m at a 5 m goal radius.
+            (c.policy.0 - 1.8_f32.ln()).abs() < 1e-6,
             "altitude feature {}",
             c.policy.0
         );

@@ -4,6 +4,7 @@
 //! skyherd-sim run  --scenario paper-drive --policy strombom --seed 3 --out trace.jsonl
 //! skyherd-sim step --state state.json > next.json
 //! skyherd-sim eval --episodes 100 --out-dir docs/baselines
+//! skyherd-sim eval --methods model:models/mtddpg-v1.skym,strombom --out-dir docs/learned
 //! skyherd-sim plot-trajectory --policy ctrl --targets 8 --herders 4 --out docs/baselines/fig4-ctrl
 //! ```
 
@@ -16,7 +17,10 @@ use anyhow::{Context, Result, anyhow, bail};
 use clap::{Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
 use skyherd_sim::baseline::Method;
-use skyherd_sim::eval::{ConfigResult, SweepSpec, run_sweep, to_csv, to_markdown};
+use skyherd_sim::eval::{
+    ConfigResult, SweepSpec, comparison_markdown, run_sweep, to_csv, to_markdown,
+};
+use skyherd_sim::learned::ModelPolicy;
 use skyherd_sim::task::parse_task;
 use skyherd_sim::trace::{TraceLine, step_state_json};
 use skyherd_sim::{Env, HerderCount, PolicyFactory, Scenario, World, plot, run_episode};
@@ -39,7 +43,7 @@ enum Command {
         /// A preset (paper-drive, paper-collect, indoor) or a scenario TOML file.
         #[arg(long, default_value = "paper-drive")]
         scenario: String,
-        /// Policy: strombom, ctrl, lama, farthest.
+        /// Policy: strombom, ctrl, lama, farthest, or `model:PATH` (an int8 model file).
         #[arg(long, default_value = "strombom")]
         policy: String,
         /// Episode seed (default: the scenario's).
@@ -66,7 +70,7 @@ enum Command {
         /// Tasks, comma separated.
         #[arg(long, value_delimiter = ',', default_value = "driving,collecting")]
         tasks: Vec<String>,
-        /// Methods, comma separated.
+        /// Methods, comma separated: baselines and `model:PATH` model files.
         #[arg(
             long,
             value_delimiter = ',',
@@ -108,21 +112,25 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
-    /// Draw the Fig. 3 plots from a results.json written by `eval`.
+    /// Merge results.json files written by `eval` (for example the baselines' and a model's),
+    /// draw the Fig. 3 plots of all their methods and write the merged results.md/.csv.
     PlotFig3 {
-        /// results.json from `eval`.
-        #[arg(long)]
-        results: PathBuf,
+        /// results.json files from `eval`, comma separated or repeated.
+        #[arg(long, value_delimiter = ',', required = true)]
+        results: Vec<PathBuf>,
         /// Output directory.
         #[arg(long)]
         out_dir: PathBuf,
+        /// Also write comparison.md: this method beside the best other method per configuration.
+        #[arg(long)]
+        compare: Option<String>,
     },
     /// Run one driving episode and draw its Fig. 4-style trajectory (PNG + SVG).
     PlotTrajectory {
         /// Scenario preset or file.
         #[arg(long, default_value = "paper-drive")]
         scenario: String,
-        /// Policy.
+        /// Policy (a baseline or `model:PATH`).
         #[arg(long, default_value = "farthest")]
         policy: String,
         /// Episode seed.
@@ -145,10 +153,15 @@ enum Command {
     },
 }
 
-/// The policies the command line knows. A learned actor plugs in here: add its factory (for
-/// example one that loads a model file) and every subcommand, `eval` included, can use it.
+/// The policies the command line knows: a baseline by name, or `model:PATH`, an int8 model file
+/// run through the onboard actor as it flies.
 fn policy_factory(name: &str) -> Result<Arc<dyn PolicyFactory>> {
-    let method: Method = name.parse().map_err(|e: String| anyhow!(e))?;
+    if let Some(path) = name.strip_prefix("model:") {
+        return Ok(Arc::new(ModelPolicy::from_file(path.as_ref())?));
+    }
+    let method: Method = name
+        .parse()
+        .map_err(|e: String| anyhow!("{e} (or `model:PATH` for a model file)"))?;
     Ok(Arc::new(method))
 }
 
@@ -205,13 +218,35 @@ fn main() -> Result<()> {
             };
             eval(spec, threads, out_dir.as_deref(), plots, json)
         }
-        Command::PlotFig3 { results, out_dir } => {
-            let text = fs::read_to_string(&results)
-                .with_context(|| format!("reading {}", results.display()))?;
-            let results: Vec<ConfigResult> = serde_json::from_str(&text)?;
+        Command::PlotFig3 {
+            results,
+            out_dir,
+            compare,
+        } => {
+            let mut merged: Vec<ConfigResult> = Vec::new();
+            for path in &results {
+                let text = fs::read_to_string(path)
+                    .with_context(|| format!("reading {}", path.display()))?;
+                let part: Vec<ConfigResult> = serde_json::from_str(&text)
+                    .with_context(|| format!("{} is not an eval results.json", path.display()))?;
+                merged.extend(part);
+            }
             fs::create_dir_all(&out_dir)?;
-            for f in plot::fig3(&results, &out_dir)? {
+            for f in plot::fig3(&merged, &out_dir)? {
                 eprintln!("wrote {}", f.display());
+            }
+            if results.len() > 1 {
+                fs::write(out_dir.join("results.md"), to_markdown(&merged))?;
+                fs::write(out_dir.join("results.csv"), to_csv(&merged))?;
+            }
+            if let Some(method) = compare {
+                if !merged.iter().any(|r| r.config.method == method) {
+                    bail!("no results for method `{method}` to compare");
+                }
+                fs::write(
+                    out_dir.join("comparison.md"),
+                    comparison_markdown(&merged, &method),
+                )?;
             }
             Ok(())
         }

@@ -1,0 +1,258 @@
+//! A learned actor as a simulator [`Policy`]: decentralised execution exactly as on the drone.
+//!
+//! Every herder encodes its own observation with the onboard encoder (through
+//! [`EncoderBuffers`], the one copy), asks the actor for a normalised local-frame action and turns
+//! it into a simulator-frame velocity with `LocalFrame::action_to_world`. [`ModelPolicy`] loads an
+//! int8 model file and runs it through `skyherd_onboard::actor::Actor`, the code that flies, so
+//! `skyherd-sim eval --methods model:models/mtddpg-v1.skym` evaluates the shipped model as it
+//! flies beside the baselines.
+//!
+//! ```
+//! use skyherd_sim::learned::ModelPolicy;
+//! use skyherd_sim::{Env, PolicyFactory, Scenario, run_episode};
+//!
+//! let model = ModelPolicy::from_file("../models/mtddpg-v1.skym".as_ref()).unwrap();
+//! let mut scenario = Scenario::paper_drive();
+//! scenario.targets = 4;
+//! let mut env = Env::new(scenario).unwrap();
+//! let mut policy = model.make();
+//! let summary = run_episode(&mut env, policy.as_mut(), 7, |_, _| {}).unwrap();
+//! assert!(summary.steps > 0);
+//! ```
+
+use std::fmt;
+use std::path::{Path, PathBuf};
+
+use skyherd_model::{FloatActor, FormatError, Task};
+use skyherd_onboard::actor::Actor;
+use skyherd_onboard::obs::FEATURES;
+
+use crate::obs::EncoderBuffers;
+use crate::policy::{Policy, PolicyFactory};
+use crate::world::World;
+
+/// Something that maps features to a normalised local-frame action.
+pub trait Infer {
+    /// The action in `[-1, 1]^3` for `features` in `task`.
+    fn infer(&self, task: Task, features: &[f32; FEATURES]) -> [f32; 3];
+}
+
+impl<T: Infer + ?Sized> Infer for &T {
+    fn infer(&self, task: Task, features: &[f32; FEATURES]) -> [f32; 3] {
+        (**self).infer(task, features)
+    }
+}
+
+impl Infer for FloatActor {
+    fn infer(&self, task: Task, features: &[f32; FEATURES]) -> [f32; 3] {
+        self.forward(task, features)
+    }
+}
+
+impl Infer for Actor<'_> {
+    fn infer(&self, task: Task, features: &[f32; FEATURES]) -> [f32; 3] {
+        Actor::infer(self, task, features)
+    }
+}
+
+/// A learned actor as a per-herder simulator policy.
+#[derive(Clone, Debug)]
+pub struct ActorPolicy<A> {
+    actor: A,
+    buffers: EncoderBuffers,
+    loaded_step: Option<u64>,
+    features: [f32; FEATURES],
+    /// Every encoded observation is appended here when recording (for calibration and parity).
+    pub recorded: Option<Vec<(Task, [f32; FEATURES])>>,
+}
+
+impl<A: Infer> ActorPolicy<A> {
+    /// Wraps `actor`.
+    pub fn new(actor: A) -> Self {
+        ActorPolicy {
+            actor,
+            buffers: EncoderBuffers::default(),
+            loaded_step: None,
+            features: [0.0; FEATURES],
+            recorded: None,
+        }
+    }
+
+    /// Wraps `actor` and records every observation it sees.
+    pub fn recording(actor: A) -> Self {
+        ActorPolicy {
+            recorded: Some(Vec::new()),
+            ..ActorPolicy::new(actor)
+        }
+    }
+
+    /// The wrapped actor.
+    pub fn actor(&self) -> &A {
+        &self.actor
+    }
+}
+
+impl<A: Infer> Policy for ActorPolicy<A> {
+    fn reset(&mut self, world: &World, _seed: u64) {
+        self.buffers.fill(world);
+        self.loaded_step = Some(world.step);
+    }
+
+    fn act(&mut self, world: &World, herder: usize) -> [f64; 3] {
+        // The f32 copy of the world is made once per step; herder 0 starts a new step (a reset
+        // can leave the step counter equal, so it always reloads).
+        if herder == 0 || self.loaded_step != Some(world.step) {
+            self.buffers.fill(world);
+            self.loaded_step = Some(world.step);
+        }
+        match self.buffers.encode(herder, &mut self.features) {
+            Ok(frame) => {
+                if let Some(log) = self.recorded.as_mut() {
+                    log.push((world.task, self.features));
+                }
+                let v = frame.action_to_world(self.actor.infer(world.task, &self.features));
+                v.map(f64::from)
+            }
+            // The drone's failsafe for an unusable observation: hold position.
+            Err(_) => [0.0; 3],
+        }
+    }
+}
+
+/// Why a model file could not be used as a policy.
+#[derive(Debug)]
+pub enum ModelPolicyError {
+    /// The file could not be read.
+    Read {
+        /// The file.
+        path: PathBuf,
+        /// The I/O error.
+        source: std::io::Error,
+    },
+    /// The bytes are not a model for this build's encoder.
+    Format {
+        /// The file.
+        path: PathBuf,
+        /// What was wrong.
+        source: FormatError,
+    },
+}
+
+impl fmt::Display for ModelPolicyError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            ModelPolicyError::Read { path, source } => {
+                write!(f, "cannot read model {}: {source}", path.display())
+            }
+            ModelPolicyError::Format { path, source } => {
+                write!(f, "model {} rejected: {source}", path.display())
+            }
+        }
+    }
+}
+
+impl std::error::Error for ModelPolicyError {
+    fn source(&self) -> Option<&(dyn std::error::Error + 'static)> {
+        match self {
+            ModelPolicyError::Read { source, .. } => Some(source),
+            ModelPolicyError::Format { source, .. } => Some(source),
+        }
+    }
+}
+
+/// An int8 model file as a [`PolicyFactory`]: every policy runs the onboard `Actor`.
+#[derive(Clone, Debug)]
+pub struct ModelPolicy {
+    name: String,
+    actor: Actor<'static>,
+}
+
+impl ModelPolicy {
+    /// Loads and validates `path`. The bytes stay alive for the rest of the process (the
+    /// zero-copy `Actor` borrows them); a run loads a handful of models at most.
+    pub fn from_file(path: &Path) -> Result<Self, ModelPolicyError> {
+        let bytes = std::fs::read(path).map_err(|source| ModelPolicyError::Read {
+            path: path.to_owned(),
+            source,
+        })?;
+        let name = path
+            .file_stem()
+            .map_or_else(|| "model".to_owned(), |s| s.to_string_lossy().into_owned());
+        Self::from_bytes(name, bytes).map_err(|source| ModelPolicyError::Format {
+            path: path.to_owned(),
+            source,
+        })
+    }
+
+    /// Validates `bytes` as a model called `name` in reports.
+    pub fn from_bytes(name: String, bytes: Vec<u8>) -> Result<Self, FormatError> {
+        let bytes: &'static [u8] = Box::leak(bytes.into_boxed_slice());
+        Ok(ModelPolicy {
+            name,
+            actor: Actor::from_bytes(bytes)?,
+        })
+    }
+
+    /// The onboard actor.
+    pub fn actor(&self) -> &Actor<'static> {
+        &self.actor
+    }
+}
+
+impl PolicyFactory for ModelPolicy {
+    fn name(&self) -> String {
+        self.name.clone()
+    }
+
+    fn make(&self) -> Box<dyn Policy + Send> {
+        Box::new(ActorPolicy::new(self.actor))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::{Env, HerderCount, Scenario};
+
+    /// "Full speed forward, up" whatever the observation.
+    struct Forward;
+    impl Infer for Forward {
+        fn infer(&self, _: Task, _: &[f32; FEATURES]) -> [f32; 3] {
+            [1.0, 0.0, 1.0]
+        }
+    }
+
+    #[test]
+    fn every_herder_gets_its_own_observation_and_a_capped_velocity() {
+        let mut scenario = Scenario::paper_drive().without_noise();
+        scenario.targets = 8;
+        scenario.herders = HerderCount::Fixed(3);
+        let env = Env::new(scenario).expect("valid scenario");
+        let world = env.observation();
+        let mut policy = ActorPolicy::recording(Forward);
+        policy.reset(world, 0);
+        for h in 0..3 {
+            let v = policy.act(world, h);
+            let speed = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+            assert!((speed - world.limits.herder).abs() < 1e-3, "speed {speed}");
+        }
+        let recorded = policy.recorded.expect("recording");
+        assert_eq!(recorded.len(), 3);
+        assert_ne!(recorded[0].1, recorded[1].1, "herders see different worlds");
+    }
+
+    #[test]
+    fn a_broken_model_file_is_a_clear_error() {
+        let dir = std::env::temp_dir().join(format!("skyherd-learned-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("broken.skym");
+        std::fs::write(&path, b"SKYMnot a model").unwrap();
+        let err = ModelPolicy::from_file(&path).unwrap_err().to_string();
+        assert!(
+            err.contains("broken.skym") && err.contains("rejected"),
+            "{err}"
+        );
+        let missing = ModelPolicy::from_file(&dir.join("missing.skym")).unwrap_err();
+        assert!(missing.to_string().contains("cannot read"), "{missing}");
+    }
+}
