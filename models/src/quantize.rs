@@ -745,10 +745,16 @@ mod tests {
         for i in 0..3 {
             for j in 0..3 {
                 let v: f64 = (0..3).map(|k| a[i * 3 + k] * inv[k * 3 + j]).sum();
-                assert!((v - if i == j { 1.0 } else { 0.0 }).abs() < 1e-12, "{i},{j}: {v}");
+                assert!(
+                    (v - if i == j { 1.0 } else { 0.0 }).abs() < 1e-12,
+                    "{i},{j}: {v}"
+                );
             }
         }
-        assert!(cholesky_lower(&[1.0, 2.0, 2.0, 1.0], 2).is_none(), "indefinite");
+        assert!(
+            cholesky_lower(&[1.0, 2.0, 2.0, 1.0], 2).is_none(),
+            "indefinite"
+        );
     }
 
     #[test]
@@ -759,7 +765,9 @@ mod tests {
         let samples: Vec<Vec<f32>> = (0..2000)
             .map(|_| {
                 let z = rng.uniform(-1.0, 1.0);
-                (0..n).map(|_| (z + 0.1 * rng.uniform(-1.0, 1.0)) as f32).collect()
+                (0..n)
+                    .map(|_| (z + 0.1 * rng.uniform(-1.0, 1.0)) as f32)
+                    .collect()
             })
             .collect();
         let mut moment = Moment::new(n);
@@ -789,7 +797,10 @@ mod tests {
             "compensated {e_compensated} vs nearest {e_nearest}"
         );
         // No calibration: plain round-to-nearest.
-        assert_eq!(ErrorCompensation::new(&Moment::new(n)).round_row(&row, scale), nearest);
+        assert_eq!(
+            ErrorCompensation::new(&Moment::new(n)).round_row(&row, scale),
+            nearest
+        );
     }
 
     #[test]

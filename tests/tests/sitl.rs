@@ -80,10 +80,11 @@ fn daemon_log(run: &Run, drone: usize) -> String {
 }
 
 /// The paper's indoor test through the full MAVLink loop. The paper's drones finish in 30 s; the
-/// shipped model takes longer in this room (it was trained in the 500 m arena, and its altitude
-/// feature is relative to the ceiling, which the room does not scale: it flies at 0.6 m, a
-/// "30 m" herder in the zoomed world, and pushes weakly). So this asserts completion within
-/// the 300 s limit and reports the time against the paper's 30 s.
+/// shipped model does not (about 125 s on seed 0 with encoder v3; 180 s with v2, whose altitude
+/// feature followed the unscaled ceiling). Even the fastest rule needs 32-48 s in this room
+/// (Strömbom, `skyherd-sim run --scenario indoor`, seeds 0-5), so 30 s asks for a policy that
+/// clearly beats every baseline; see models/MODEL.md. This asserts completion well inside the
+/// 300 s limit, at a bound the v2 model (flying at 0.6 m) would miss, and prints the time.
 #[test]
 fn indoor_two_drones_drive_four_vehicles_to_the_goal() {
     let run = fly("indoor", &["--scenario", "indoor", "--time-limit", "300"]);
@@ -93,7 +94,7 @@ fn indoor_two_drones_drive_four_vehicles_to_the_goal() {
     assert_eq!(r["success"], true, "{r}\n{}", run.stderr);
     let time = r["mission_time_s"].as_f64().expect("a success has a time");
     eprintln!("indoor: all 4 vehicles in the goal after {time:.1} s (paper: 30 s)");
-    assert!(time <= 300.0, "took {time} s");
+    assert!(time <= 160.0, "took {time} s");
     assert_eq!(r["autopilot_failsafes"], 0);
     // The ground station ran the mission to the end without aborting (whether its own tracks
     // settled in the goal before the simulator stopped depends on spurious tracks), and wrote

@@ -21,6 +21,9 @@
 use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
+use skyherd_model::Task;
+use skyherd_sim::baseline::Method;
+use skyherd_sim::task::parse_task;
 use thiserror::Error;
 
 use crate::ddpg::{DdpgConfig, NetworkConfig};
@@ -112,6 +115,48 @@ pub struct WarmStartConfig {
     /// During DDPG, weight of the pull towards the demonstrated actions (TD3+BC's
     /// `1 / alpha`; the Q term is normalised by mean |Q|). 0 is plain DDPG after the warm start.
     pub imitation_weight: f32,
+    /// Teachers for particular flocks, tried in order before the per-task baselines above: no
+    /// single rule is best everywhere (docs/baselines: Strömbom drives fastest with several
+    /// herders, Lama-style alone and when collecting).
+    pub teachers: Vec<TeacherRule>,
+}
+
+/// "Imitate `baseline` in `task` when M >= `herders_at_least` and N <= `targets_at_most`."
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TeacherRule {
+    /// `driving` or `collecting`.
+    pub task: String,
+    /// Smallest herder count M (after resolving the adaptive count) the rule applies to.
+    #[serde(default)]
+    pub herders_at_least: usize,
+    /// Largest target count N the rule applies to.
+    #[serde(default = "unbounded")]
+    pub targets_at_most: usize,
+    /// The baseline imitated (a `skyherd_sim::baseline::Method` name).
+    pub baseline: String,
+}
+
+fn unbounded() -> usize {
+    usize::MAX
+}
+
+impl WarmStartConfig {
+    /// The baseline imitated in `task` with `targets` targets and `herders` herders.
+    /// (Names were checked by [`TrainConfig::validate`]; an unknown one falls back to Lama.)
+    pub fn teacher(&self, task: Task, targets: usize, herders: usize) -> Method {
+        let rule = self.teachers.iter().find(|r| {
+            parse_task(&r.task) == Some(task)
+                && herders >= r.herders_at_least
+                && targets <= r.targets_at_most
+        });
+        let name = match (rule, task) {
+            (Some(r), _) => &r.baseline,
+            (None, Task::Driving) => &self.driving_baseline,
+            (None, Task::Collecting) => &self.collecting_baseline,
+        };
+        name.parse().unwrap_or(Method::Lama)
+    }
 }
 
 impl Default for WarmStartConfig {
@@ -125,6 +170,7 @@ impl Default for WarmStartConfig {
             imitation_learning_rate: 1e-3,
             critic_updates: 5_000,
             imitation_weight: 0.4,
+            teachers: Vec::new(),
         }
     }
 }
@@ -212,7 +258,15 @@ pub struct LoopConfig {
     /// Train with the scenario's test-time noise (boids parameters, sensing, actuation), so
     /// that the policy meets in training what it meets in evaluation.
     pub noise: bool,
+    /// Fraction of driving episodes with N <= [`ROOM_LAYOUT_MAX_TARGETS`] laid out like the
+    /// indoor room zoomed back to the paper's scale: start and goal at least 400 m apart,
+    /// 25 m from the walls (the paper layout keeps 50 m and 150 m), so the long drives from
+    /// corner to corner that the room asks for are met in training too.
+    pub room_layout_fraction: f64,
 }
+
+/// Largest flock drawn into the room layout.
+pub const ROOM_LAYOUT_MAX_TARGETS: usize = 64;
 
 impl Default for LoopConfig {
     fn default() -> Self {
@@ -227,6 +281,7 @@ impl Default for LoopConfig {
             checkpoint_every_s: 120.0,
             threads: 2,
             noise: true,
+            room_layout_fraction: 0.25,
         }
     }
 }
@@ -335,17 +390,32 @@ impl TrainConfig {
             }
         }
         for (task, _, _) in &self.eval.scenarios {
-            if skyherd_sim::task::parse_task(task).is_none() {
+            if parse_task(task).is_none() {
                 return bad("eval.scenarios", "task must be `driving` or `collecting`");
             }
         }
+        let teachers = self.warm_start.teachers.iter().map(|r| &r.baseline);
         for name in [
             &self.warm_start.driving_baseline,
             &self.warm_start.collecting_baseline,
-        ] {
-            if name.parse::<skyherd_sim::baseline::Method>().is_err() {
+        ]
+        .into_iter()
+        .chain(teachers)
+        {
+            if name.parse::<Method>().is_err() {
                 return bad("warm_start", "unknown baseline method name");
             }
+        }
+        if self
+            .warm_start
+            .teachers
+            .iter()
+            .any(|r| parse_task(&r.task).is_none())
+        {
+            return bad(
+                "warm_start.teachers",
+                "task must be `driving` or `collecting`",
+            );
         }
         Ok(())
     }
@@ -373,6 +443,39 @@ mod tests {
         let text = include_str!("../configs/mtddpg-v1.toml");
         let file = TrainConfig::from_toml_str(text).expect("shipped config parses");
         assert_eq!(file, TrainConfig::default());
+    }
+
+    #[test]
+    fn teachers_are_picked_by_task_and_flock() {
+        let rule = |task: &str, herders_at_least, targets_at_most| TeacherRule {
+            task: task.into(),
+            herders_at_least,
+            targets_at_most,
+            baseline: "strombom".into(),
+        };
+        let w = WarmStartConfig {
+            teachers: vec![rule("driving", 2, 64), rule("collecting", 8, 64)],
+            ..WarmStartConfig::default()
+        };
+        assert_eq!(
+            WarmStartConfig::default().teacher(Task::Driving, 16, 4),
+            Method::Lama
+        );
+        assert_eq!(w.teacher(Task::Driving, 16, 4), Method::Strombom);
+        assert_eq!(w.teacher(Task::Driving, 4, 2), Method::Strombom);
+        assert_eq!(w.teacher(Task::Driving, 16, 1), Method::Lama, "alone");
+        assert_eq!(
+            w.teacher(Task::Driving, 128, 8),
+            Method::Lama,
+            "large flock"
+        );
+        assert_eq!(w.teacher(Task::Collecting, 16, 4), Method::Lama);
+        assert_eq!(w.teacher(Task::Collecting, 64, 8), Method::Strombom);
+        let err = TrainConfig::from_toml_str(
+            "[warm_start]\nteachers = [{ task = \"herding\", baseline = \"lama\" }]",
+        )
+        .unwrap_err();
+        assert!(err.to_string().contains("teachers"), "{err}");
     }
 
     #[test]

@@ -16,7 +16,7 @@ use skyherd_sim::obs::EncoderBuffers;
 use skyherd_sim::policy::act_all;
 use skyherd_sim::{Env, EnvError, HerderCount, Policy, RewardCorrection, Scenario, StepOutcome};
 
-use crate::config::{RewardConfig, TrainConfig};
+use crate::config::{ROOM_LAYOUT_MAX_TARGETS, RewardConfig, TrainConfig, WarmStartConfig};
 use crate::ddpg::ACTION_DIM;
 use crate::network::{MultiTaskMlp, Tape};
 use crate::replay::ReplayBuffer;
@@ -30,6 +30,29 @@ pub struct Draw {
     pub targets: usize,
     /// Herders M, 0 for the adaptive count.
     pub herders: usize,
+    /// The indoor room's layout at paper scale instead of the paper's (see
+    /// `LoopConfig::room_layout_fraction`).
+    pub room: bool,
+}
+
+impl Draw {
+    /// A paper-layout draw.
+    pub fn paper(task: Task, targets: usize, herders: usize) -> Draw {
+        Draw {
+            task,
+            targets,
+            herders,
+            room: false,
+        }
+    }
+}
+
+/// Whether a draw of `task` with `targets` goes into the room layout.
+fn draw_room(config: &TrainConfig, rng: &mut ChaCha8Rng, task: Task, targets: usize) -> bool {
+    task == Task::Driving
+        && targets <= ROOM_LAYOUT_MAX_TARGETS
+        && config.training.room_layout_fraction > 0.0
+        && rng.random_bool(config.training.room_layout_fraction.min(1.0))
 }
 
 /// The paper scenario of `draw`, with the learner's step limit, noise on or off, and the
@@ -42,6 +65,11 @@ pub fn training_scenario(
     gamma: f64,
 ) -> Scenario {
     let mut s = Scenario::paper(draw.task);
+    if draw.room {
+        // The indoor preset's layout (sim-harness/scenarios/indoor.toml) times 50.
+        s.layout.wall_margin = 25.0;
+        s.layout.min_start_goal_distance = 400.0;
+    }
     s.targets = draw.targets;
     s.herders = if draw.herders == 0 {
         HerderCount::Adaptive
@@ -96,9 +124,9 @@ pub struct EpisodeStats {
 pub enum Controller<'a> {
     /// The learned actor plus Gaussian exploration noise of this std (normalised units).
     Actor(&'a MultiTaskMlp, f32),
-    /// The rule-based baselines (driving, collecting); their velocities are recorded as
-    /// normalised local-frame actions.
-    Baseline(Method, Method),
+    /// The rule-based baselines, one per task and flock (the warm start's teacher table); their
+    /// velocities are recorded as normalised local-frame actions.
+    Baseline(&'a WarmStartConfig),
 }
 
 struct Slot {
@@ -284,15 +312,14 @@ impl Rollouts {
                 }
                 out
             }
-            Controller::Baseline(driving, collecting) => {
+            Controller::Baseline(teachers) => {
                 let mut velocities = Vec::new();
                 self.slots
                     .iter_mut()
                     .map(|s| {
-                        let method = match s.draw.task {
-                            Task::Driving => driving,
-                            Task::Collecting => collecting,
-                        };
+                        let world = s.env.world();
+                        let method =
+                            teachers.teacher(s.draw.task, world.targets.len(), world.herders.len());
                         if s.rule_method != Some(method) || s.env.world().step == 0 {
                             s.rule = RulePolicy::new(method);
                             s.rule.reset(s.env.observation(), s.env.info().seed);
@@ -323,10 +350,13 @@ pub fn draw_from_stage(
     task: Task,
 ) -> Draw {
     let stage = config.stage_at(progress);
+    let targets = stage.targets[rng.random_range(0..stage.targets.len())];
+    let herders = stage.herders[rng.random_range(0..stage.herders.len())];
     Draw {
         task,
-        targets: stage.targets[rng.random_range(0..stage.targets.len())],
-        herders: stage.herders[rng.random_range(0..stage.herders.len())],
+        targets,
+        herders,
+        room: draw_room(config, rng, task, targets),
     }
 }
 
@@ -334,10 +364,13 @@ pub fn draw_from_stage(
 pub fn draw_from_all_stages(config: &TrainConfig, rng: &mut ChaCha8Rng, task: Task) -> Draw {
     let stages = &config.curriculum.stages;
     let stage = &stages[rng.random_range(0..stages.len())];
+    let targets = stage.targets[rng.random_range(0..stage.targets.len())];
+    let herders = stage.herders[rng.random_range(0..stage.herders.len())];
     Draw {
         task,
-        targets: stage.targets[rng.random_range(0..stage.targets.len())],
-        herders: stage.herders[rng.random_range(0..stage.herders.len())],
+        targets,
+        herders,
+        room: draw_room(config, rng, task, targets),
     }
 }
 
@@ -347,14 +380,43 @@ mod tests {
     use rand::SeedableRng;
 
     #[test]
+    fn room_layout_draws_are_long_drives_near_the_walls_and_valid() {
+        let config = TrainConfig::default();
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let draws: Vec<Draw> = (0..400)
+            .map(|_| draw_from_stage(&config, 0.9, &mut rng, Task::Driving))
+            .collect();
+        let rooms = draws.iter().filter(|d| d.room).count();
+        assert!(
+            (60..140).contains(&rooms),
+            "{rooms} of 400 at fraction 0.25"
+        );
+        assert!(
+            draws
+                .iter()
+                .all(|d| !d.room || d.targets <= ROOM_LAYOUT_MAX_TARGETS)
+        );
+        let collecting = draw_from_stage(&config, 0.9, &mut rng, Task::Collecting);
+        assert!(!collecting.room);
+        let draw = Draw {
+            room: true,
+            ..Draw::paper(Task::Driving, 16, 2)
+        };
+        let s = training_scenario(draw, 600, true, &config.reward, 0.99);
+        s.validate().expect("the room layout is a valid scenario");
+        let mut env = Env::new(s).expect("env");
+        env.reset(5);
+        let w = env.world();
+        let c = w.flock_centroid();
+        let d = ((c[0] - w.goal.center[0]).powi(2) + (c[1] - w.goal.center[1]).powi(2)).sqrt();
+        assert!(d > 330.0, "start-goal {d} m");
+    }
+
+    #[test]
     fn suicide_no_longer_pays_under_the_learner_reward() {
         // Leaving on step 1 must be worse than idling for the whole episode (DESIGN §2).
         let config = TrainConfig::default();
-        let draw = Draw {
-            task: Task::Driving,
-            targets: 16,
-            herders: 4,
-        };
+        let draw = Draw::paper(Task::Driving, 16, 4);
         let s = training_scenario(draw, 600, false, &config.reward, 0.99);
         let cost = step_cost(&s, config.reward.flight_scale);
         let gamma = 0.99_f64;
@@ -390,11 +452,7 @@ mod tests {
         config.training.episode_step_limit = 5;
         let mut rng = ChaCha8Rng::seed_from_u64(1);
         let actor = MultiTaskMlp::new(2, FEATURES, 16, 1, 3, crate::nn::Activation::Tanh, &mut rng);
-        let fixed = |_: &mut ChaCha8Rng, task| Draw {
-            task,
-            targets: 4,
-            herders: 3,
-        };
+        let fixed = |_: &mut ChaCha8Rng, task| Draw::paper(task, 4, 3);
         let mut draw = fixed;
         let mut rollouts =
             Rollouts::new(2, &config, ChaCha8Rng::seed_from_u64(2), &mut draw).expect("envs");
@@ -422,7 +480,11 @@ mod tests {
             .collect();
         rollouts
             .step(
-                &Controller::Baseline(Method::FarthestTargets, Method::FarthestTargets),
+                &Controller::Baseline(&WarmStartConfig {
+                    driving_baseline: "farthest".into(),
+                    collecting_baseline: "farthest".into(),
+                    ..WarmStartConfig::default()
+                }),
                 &mut replay,
                 Some(&mut demos),
                 &mut draw,

@@ -22,7 +22,6 @@ use rand_chacha::ChaCha8Rng;
 use skyherd_model::Task;
 use skyherd_onboard::obs::FEATURES;
 use skyherd_sim::EnvError;
-use skyherd_sim::baseline::Method;
 use thiserror::Error;
 
 use crate::checkpoint::{self, Checkpoint, CheckpointError, Progress};
@@ -510,20 +509,12 @@ impl Run<'_> {
     ) -> Result<(f64, f64), TrainError> {
         let w = &self.config.warm_start;
         let config = self.config;
-        let methods = (
-            w.driving_baseline
-                .parse::<Method>()
-                .unwrap_or(Method::FarthestTargets),
-            w.collecting_baseline
-                .parse::<Method>()
-                .unwrap_or(Method::FarthestTargets),
-        );
         let mut draw = |rng: &mut ChaCha8Rng, task| draw_from_all_stages(config, rng, task);
         let rollout_rng = ChaCha8Rng::seed_from_u64(config.seed.wrapping_add(1));
         let mut rollouts = Rollouts::new(config.training.envs, config, rollout_rng, &mut draw)?;
         let mut done = [0usize; 2];
         observer.phase("demonstrations", (w.episodes_per_task * 2) as u64);
-        let controller = Controller::Baseline(methods.0, methods.1);
+        let controller = Controller::Baseline(w);
         let mut recent = Recent { window: Vec::new() };
         while done.iter().any(|&d| d < w.episodes_per_task) {
             let finished = rollouts.step(
