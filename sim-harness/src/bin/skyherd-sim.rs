@@ -263,11 +263,13 @@ fn main() -> Result<()> {
             s.herders = HerderCount::Fixed(herders);
             s.validate()?;
             let mut env = Env::new(s)?;
-            let mut p = policy_factory(&policy)?.make();
+            let factory = policy_factory(&policy)?;
+            let name = factory.name();
+            let mut p = factory.make();
             let mut states: Vec<World> = Vec::new();
             let summary = run_episode(&mut env, p.as_mut(), seed, |w, _| states.push(w.clone()))?;
             let title = format!(
-                "{policy}: {herders} herders, {targets} targets, seed {seed}: {} in {} s",
+                "{name}: {herders} herders, {targets} targets, seed {seed}: {} in {} s",
                 if summary.success {
                     "success"
                 } else {
