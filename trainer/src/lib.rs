@@ -44,6 +44,7 @@ pub mod export;
 pub mod network;
 pub mod nn;
 pub mod policy;
+pub mod qat;
 pub mod replay;
 pub mod report;
 pub mod rollout;

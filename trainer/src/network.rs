@@ -140,6 +140,21 @@ impl MultiTaskMlp {
 
     /// Runs a batch of `task` inputs (row-major `[batch][inputs]`), recording into `tape`.
     pub fn forward(&self, task: usize, x: &[f32], batch: usize, tape: &mut Tape) {
+        self.forward_rounding(task, x, batch, tape, &[]);
+    }
+
+    /// [`forward`](Self::forward) with every hidden layer's output (after ReLU) rounded to a
+    /// multiple of `hidden_steps[i]` and clipped at 255 steps, as the int8 actor stores it
+    /// (quantization-aware training; the backward pass treats the rounding as identity). An
+    /// empty `hidden_steps` rounds nothing.
+    pub fn forward_rounding(
+        &self,
+        task: usize,
+        x: &[f32],
+        batch: usize,
+        tape: &mut Tape,
+        hidden_steps: &[f32],
+    ) {
         assert!(task < self.tasks(), "task {task} out of range");
         assert_eq!(
             x.len(),
@@ -163,6 +178,11 @@ impl MultiTaskMlp {
                 Activation::Relu
             };
             activation.apply(y);
+            if let Some(&step) = hidden_steps.get(i).filter(|&&s| i + 1 < depth && s > 0.0) {
+                let top = 255.0 * step;
+                y.iter_mut()
+                    .for_each(|v| *v = ((*v / step).round() * step).min(top));
+            }
         }
     }
 

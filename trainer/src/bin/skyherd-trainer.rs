@@ -58,6 +58,11 @@ enum Command {
         /// Calibration episodes per scenario.
         #[arg(long, default_value_t = 6)]
         calibration_episodes: usize,
+        /// Quantization-aware fine-tuning steps before quantizing (`skyherd_trainer::qat`; 0:
+        /// quantize the checkpoint's actor as it is). The int8 model is compared with, and
+        /// `--actor-out` writes, the checkpoint's actor.
+        #[arg(long, default_value_t = 4_000)]
+        qat_steps: usize,
         /// Also write the float actor here (the reference the parity test compares against).
         #[arg(long)]
         actor_out: Option<PathBuf>,
@@ -188,6 +193,7 @@ fn main() -> Result<()> {
             out,
             calibration_steps,
             calibration_episodes,
+            qat_steps,
             actor_out,
         } => {
             let c = checkpoint::load(&path)?;
@@ -203,7 +209,14 @@ fn main() -> Result<()> {
                 2,
             )?;
             let max_speed = skyherd_sim::Scenario::paper_drive().limits.herder as f32;
-            let bytes = export(actor, max_speed, &calibration)?;
+            let tuned = (qat_steps > 0).then(|| {
+                let config = skyherd_trainer::qat::QatConfig {
+                    steps: qat_steps,
+                    ..Default::default()
+                };
+                skyherd_trainer::qat::finetune(actor, &calibration, config)
+            });
+            let bytes = export(tuned.as_ref().unwrap_or(actor), max_speed, &calibration)?;
             let held_out = record_observations(actor, &scenarios, 2, 3_100_000_000, 600, 3)?;
             let on_calibration = parity(actor, &bytes, &calibration)?;
             println!(
