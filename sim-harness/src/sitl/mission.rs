@@ -157,6 +157,8 @@ pub struct SitlWorld {
     ending: Option<(Ending, f64)>,
     path_length: f64,
     actions: Vec<[f64; 3]>,
+    /// Herder positions before the step (reused, no allocation per tick).
+    before: Vec<[f64; 3]>,
     wall_start: Instant,
     lockstep_misses: u64,
     ground_acking: bool,
@@ -217,6 +219,7 @@ impl SitlWorld {
             ending: None,
             path_length: 0.0,
             actions: vec![[0.0; 3]; herders],
+            before: Vec::with_capacity(herders),
             wall_start: Instant::now(),
             lockstep_misses: 0,
             ground_acking: false,
@@ -324,7 +327,9 @@ impl SitlWorld {
             };
         }
         // 2. The world, with the velocities flown; then the autopilots follow the world.
-        let before = self.world.herders.clone();
+        self.before.clear();
+        self.before.extend_from_slice(&self.world.herders);
+        let before = &self.before;
         advance(&mut self.world, &self.actions, &mut self.scratch)?;
         for (i, slot) in self.nodes.iter_mut().enumerate() {
             if let Some(node) = slot {
