@@ -16,7 +16,9 @@ use skyherd_sim::obs::EncoderBuffers;
 use skyherd_sim::policy::act_all;
 use skyherd_sim::{Env, EnvError, HerderCount, Policy, RewardCorrection, Scenario, StepOutcome};
 
-use crate::config::{ROOM_LAYOUT_MAX_TARGETS, RewardConfig, TrainConfig, WarmStartConfig};
+use crate::config::{
+    CurriculumStage, ROOM_LAYOUT_MAX_TARGETS, RewardConfig, TrainConfig, WarmStartConfig,
+};
 use crate::ddpg::ACTION_DIM;
 use crate::network::{MultiTaskMlp, Tape};
 use crate::replay::ReplayBuffer;
@@ -66,9 +68,11 @@ pub fn training_scenario(
 ) -> Scenario {
     let mut s = Scenario::paper(draw.task);
     if draw.room {
-        // The indoor preset's layout (sim-harness/scenarios/indoor.toml) times 50.
-        s.layout.wall_margin = 25.0;
-        s.layout.min_start_goal_distance = 400.0;
+        // The indoor preset's layout, zoomed back up to the paper arena (10 m room -> 500 m).
+        let room = Scenario::indoor();
+        let zoom = s.area.width / room.area.width;
+        s.layout.wall_margin = room.layout.wall_margin * zoom;
+        s.layout.min_start_goal_distance = room.layout.min_start_goal_distance * zoom;
     }
     s.targets = draw.targets;
     s.herders = if draw.herders == 0 {
@@ -320,7 +324,7 @@ impl Rollouts {
                         let world = s.env.world();
                         let method =
                             teachers.teacher(s.draw.task, world.targets.len(), world.herders.len());
-                        if s.rule_method != Some(method) || s.env.world().step == 0 {
+                        if s.rule_method != Some(method) || world.step == 0 {
                             s.rule = RulePolicy::new(method);
                             s.rule.reset(s.env.observation(), s.env.info().seed);
                             s.rule_method = Some(method);
@@ -349,21 +353,27 @@ pub fn draw_from_stage(
     rng: &mut ChaCha8Rng,
     task: Task,
 ) -> Draw {
-    let stage = config.stage_at(progress);
-    let targets = stage.targets[rng.random_range(0..stage.targets.len())];
-    let herders = stage.herders[rng.random_range(0..stage.herders.len())];
-    Draw {
-        task,
-        targets,
-        herders,
-        room: draw_room(config, rng, task, targets),
-    }
+    draw_in(config, config.stage_at(progress), rng, task)
 }
 
 /// A draw from any stage at random: the warm start's demonstrations cover the whole curriculum.
 pub fn draw_from_all_stages(config: &TrainConfig, rng: &mut ChaCha8Rng, task: Task) -> Draw {
     let stages = &config.curriculum.stages;
-    let stage = &stages[rng.random_range(0..stages.len())];
+    draw_in(
+        config,
+        &stages[rng.random_range(0..stages.len())],
+        rng,
+        task,
+    )
+}
+
+/// N, M and the layout drawn from `stage`.
+fn draw_in(
+    config: &TrainConfig,
+    stage: &CurriculumStage,
+    rng: &mut ChaCha8Rng,
+    task: Task,
+) -> Draw {
     let targets = stage.targets[rng.random_range(0..stage.targets.len())];
     let herders = stage.herders[rng.random_range(0..stage.herders.len())];
     Draw {
@@ -403,6 +413,8 @@ mod tests {
             ..Draw::paper(Task::Driving, 16, 2)
         };
         let s = training_scenario(draw, 600, true, &config.reward, 0.99);
+        assert_eq!(s.layout.wall_margin, 25.0);
+        assert_eq!(s.layout.min_start_goal_distance, 400.0);
         s.validate().expect("the room layout is a valid scenario");
         let mut env = Env::new(s).expect("env");
         env.reset(5);
