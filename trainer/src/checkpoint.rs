@@ -142,18 +142,7 @@ pub fn to_bytes(checkpoint: &Checkpoint) -> Result<Vec<u8>, CheckpointError> {
         "critic_adam_v",
         &adam_as_net(&a.critic_optimizer.second, &a.critic),
     );
-    let views = tensors
-        .iter()
-        .map(|(name, shape, bytes)| {
-            TensorView::new(Dtype::F32, shape.clone(), bytes)
-                .map(|v| (name.clone(), v))
-                .map_err(|e| CheckpointError::Format(e.to_string()))
-        })
-        .collect::<Result<Vec<_>, _>>()?;
-    let mut meta = HashMap::new();
-    meta.insert("format".into(), "skyherd-trainer-checkpoint-v1".into());
-    meta.insert("tasks".into(), a.actor.tasks().to_string());
-    meta.insert("shared_layers".into(), a.actor.shared.len().to_string());
+    let mut meta = net_meta("skyherd-trainer-checkpoint-v1", &a.actor);
     meta.insert("updates".into(), a.updates.to_string());
     meta.insert("actor_adam_step".into(), a.actor_optimizer.step.to_string());
     meta.insert(
@@ -165,6 +154,31 @@ pub fn to_bytes(checkpoint: &Checkpoint) -> Result<Vec<u8>, CheckpointError> {
         toml::to_string(&checkpoint.progress).unwrap_or_default(),
     );
     meta.insert("config".into(), checkpoint.config.to_toml());
+    serialize(&tensors, meta)
+}
+
+/// The metadata every file carries: its format and the network's shape.
+fn net_meta(format: &str, net: &MultiTaskMlp) -> HashMap<String, String> {
+    let mut meta = HashMap::new();
+    meta.insert("format".into(), format.into());
+    meta.insert("tasks".into(), net.tasks().to_string());
+    meta.insert("shared_layers".into(), net.shared.len().to_string());
+    meta
+}
+
+/// `(name, shape, f32 bytes)` tensors and metadata as safetensors bytes.
+fn serialize(
+    tensors: &[(String, Vec<usize>, Vec<u8>)],
+    meta: HashMap<String, String>,
+) -> Result<Vec<u8>, CheckpointError> {
+    let views = tensors
+        .iter()
+        .map(|(name, shape, bytes)| {
+            TensorView::new(Dtype::F32, shape.clone(), bytes)
+                .map(|v| (name.clone(), v))
+                .map_err(|e| CheckpointError::Format(e.to_string()))
+        })
+        .collect::<Result<Vec<_>, _>>()?;
     safetensors::serialize(views, &Some(meta)).map_err(|e| CheckpointError::Format(e.to_string()))
 }
 
@@ -283,20 +297,7 @@ pub fn from_bytes(bytes: &[u8]) -> Result<Checkpoint, CheckpointError> {
 pub fn save_actor(path: &Path, actor: &MultiTaskMlp) -> Result<(), CheckpointError> {
     let mut tensors = Vec::new();
     push_net(&mut tensors, "actor", actor);
-    let views = tensors
-        .iter()
-        .map(|(name, shape, bytes)| {
-            TensorView::new(Dtype::F32, shape.clone(), bytes)
-                .map(|v| (name.clone(), v))
-                .map_err(|e| CheckpointError::Format(e.to_string()))
-        })
-        .collect::<Result<Vec<_>, _>>()?;
-    let mut meta = HashMap::new();
-    meta.insert("format".into(), "skyherd-trainer-actor-v1".into());
-    meta.insert("tasks".into(), actor.tasks().to_string());
-    meta.insert("shared_layers".into(), actor.shared.len().to_string());
-    let bytes = safetensors::serialize(views, &Some(meta))
-        .map_err(|e| CheckpointError::Format(e.to_string()))?;
+    let bytes = serialize(&tensors, net_meta("skyherd-trainer-actor-v1", actor))?;
     std::fs::write(path, bytes).map_err(|source| CheckpointError::Io {
         path: path.to_owned(),
         source,
