@@ -76,7 +76,7 @@ pub fn perturb_params<R: Rng>(params: BoidsParams, rel_std: f64, rng: &mut R) ->
     for v in &mut a {
         *v = (*v + gauss(rng) * rel_std * *v).max(0.0);
     }
-    BoidsParams::from_array(a)
+    params.with_array(a)
 }
 
 /// Adds actuation noise to each command in place.

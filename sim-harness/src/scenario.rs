@@ -407,6 +407,7 @@ impl Scenario {
         nonneg("boids.flock", b.flock)?;
         nonneg("boids.herder", b.herder)?;
         nonneg("boids.separation_range", b.separation_range)?;
+        nonneg("boids.herder_height_scale", b.herder_height_scale)?;
         pos("limits.target", self.limits.target)?;
         pos("limits.herder", self.limits.herder)?;
         let r = &self.reward;
