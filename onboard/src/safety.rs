@@ -126,18 +126,34 @@ pub struct Limits {
 }
 
 impl Limits {
-    /// Limits for an arena `[0, W] x [0, H] x [0, ceiling]`: fence 1 m inside the walls,
-    /// altitude band 0.5 m above the ground to 0.5 m below the ceiling, vertical speed
-    /// `min(max_speed, 2)` m/s, 1 s look-ahead, 1 m/s return speed, snapshots up to 1 s old.
+    /// Limits for an arena `[0, W] x [0, H] x [0, ceiling]`: fence [`Limits::fence_margin`]
+    /// inside the walls (1 m, less in a small room), altitude band 0.5 m above the ground to
+    /// 0.5 m below the ceiling, vertical speed `min(max_speed, 2)` m/s, 1 s look-ahead, 1 m/s
+    /// return speed, snapshots up to 1 s old.
     pub fn arena(area: [f32; 3], max_speed: f32) -> Limits {
+        let margin = Limits::fence_margin(area);
         Limits {
             max_speed,
             max_vertical_speed: max_speed.min(2.0),
-            fence_min: [1.0, 1.0, 0.5],
-            fence_max: [area[0] - 1.0, area[1] - 1.0, area[2] - 0.5],
+            fence_min: [margin, margin, 0.5],
+            fence_max: [area[0] - margin, area[1] - margin, area[2] - 0.5],
             lookahead_s: 1.0,
             return_speed: 1.0,
             max_snapshot_age_s: 1.0,
+        }
+    }
+
+    /// How far inside the walls the fence runs: 1 m, but at most 1/40 of the narrower side. In
+    /// the paper's 10 m room a 1 m margin would fence the drones out of the outer fifth of the
+    /// floor, where the vehicles start (0.5 m from the walls) and must be got behind; 0.25 m
+    /// keeps them off the walls without that.
+    pub fn fence_margin(area: [f32; 3]) -> f32 {
+        let narrower = area[0].min(area[1]);
+        if narrower > 0.0 {
+            (narrower / 40.0).min(1.0)
+        } else {
+            // No usable area (NaN, zero, negative): no margin; `is_valid` rejects the fence.
+            0.0
         }
     }
 

@@ -182,3 +182,17 @@ fn reasons_display() {
         "stale snapshot, over speed"
     );
 }
+
+#[test]
+fn the_fence_margin_shrinks_in_a_small_room() {
+    assert_eq!(Limits::fence_margin([500.0, 500.0, 10.0]), 1.0);
+    assert_eq!(Limits::fence_margin([10.0, 12.0, 3.0]), 0.25);
+    let room = Limits::arena([10.0, 10.0, 3.0], 1.0);
+    assert_eq!(room.fence_min, [0.25, 0.25, 0.5]);
+    assert_eq!(room.fence_max, [9.75, 9.75, 2.5]);
+    assert!(room.is_valid());
+    // A nonsense area gives no margin, and limits that report themselves unusable.
+    assert_eq!(Limits::fence_margin([f32::NAN, f32::NAN, 3.0]), 0.0);
+    assert_eq!(Limits::fence_margin([-5.0, 10.0, 3.0]), 0.0);
+    assert!(!Limits::arena([f32::NAN, 10.0, 3.0], 1.0).is_valid());
+}

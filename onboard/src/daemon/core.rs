@@ -12,7 +12,7 @@
 //! once the stream has run for [`CoreConfig::stream_before_mode_ms`] asks for the autopilot's
 //! external-control mode (PX4 OFFBOARD, ArduPilot GUIDED). When the autopilot reports armed and
 //! in that mode, the core flies: world snapshot (own position replaced by the autopilot's, which
-//! is fresher) -> [`crate::obs::encode`] -> [`Policy::act`] ->
+//! is fresher, its height counted from the altitude band's floor) -> [`crate::obs::encode`] -> [`Policy::act`] ->
 //! [`crate::obs::LocalFrame::action_to_world`] -> [`crate::safety::check`] ->
 //! [`crate::frame::sim_to_ned`].
 //! It holds (zero-velocity setpoints) when the uplink is stale, when the autopilot link is lost,
@@ -666,6 +666,13 @@ impl<P: Policy> DaemonCore<P> {
             self.herders.push(own);
             self.herders.len() - 1
         };
+        let mut limits = Limits::arena(world.area, max_speed);
+        limits.max_snapshot_age_s = self.config.uplink_timeout_ms as f32 / 1000.0;
+        // The actor learned to herd from as low as the ground; this drone may not fly below
+        // its altitude band, so it reads its height above the band's floor (feature 22): held
+        // at the floor, it is as low as it can go, as the actor expects. Only the encoding
+        // sees this; the safety rules below get the true position.
+        self.herders[own_index][2] = (own[2] - limits.fence_min[2]).max(0.0);
         let (request, own_reason) = if age_ms > self.config.uplink_timeout_ms {
             ([0.0; 3], Some(HoldReason::UplinkStale { age_ms }))
         } else {
@@ -686,8 +693,6 @@ impl<P: Policy> DaemonCore<P> {
                 Err(e) => ([0.0; 3], Some(HoldReason::BadObservation(e))),
             }
         };
-        let mut limits = Limits::arena(world.area, max_speed);
-        limits.max_snapshot_age_s = self.config.uplink_timeout_ms as f32 / 1000.0;
         let checked = safety::check(
             &limits,
             &Situation {
@@ -873,7 +878,7 @@ mod tests {
 
     #[test]
     fn own_position_comes_from_the_autopilot_not_the_snapshot() {
-        /// Records feature 22, own altitude `ln(1 + z / R)`.
+        /// Records feature 22, own height above the altitude band's floor, `ln(1 + h / R)`.
         struct Altitude(f32);
         impl Policy for Altitude {
             fn act(&mut self, _task: Task, features: &[f32; FEATURES]) -> [f32; 3] {
@@ -889,8 +894,8 @@ mod tests {
         c.on_uplink(Millis(0), snapshot(1));
         assert_eq!(c.tick(Millis(0)).status, Status::Flying(Reasons::NONE));
         assert!(
-            // 4 m at a 5 m goal radius.
-            (c.policy.0 - 1.8_f32.ln()).abs() < 1e-6,
+            // 4 m up, 3.5 m above the 0.5 m floor, at a 5 m goal radius.
+            (c.policy.0 - 1.7_f32.ln()).abs() < 1e-6,
             "altitude feature {}",
             c.policy.0
         );
