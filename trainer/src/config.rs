@@ -52,6 +52,105 @@ pub enum ConfigError {
     },
 }
 
+/// One scenario the evolution stage herds: a task, N, M (0 = adaptive), the layout and how many
+/// episodes each perturbed actor herds per generation.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EvolutionScenario {
+    /// `driving` or `collecting`.
+    pub task: String,
+    /// Targets N.
+    pub targets: usize,
+    /// Herders M; 0 for the adaptive count.
+    pub herders: usize,
+    /// The indoor room's layout at paper scale (as `training.room_layout_fraction` draws).
+    #[serde(default)]
+    pub room: bool,
+    /// Episodes per perturbed actor per generation.
+    pub episodes: usize,
+}
+
+impl EvolutionScenario {
+    /// A paper-layout scenario.
+    pub fn paper(task: &str, targets: usize, herders: usize, episodes: usize) -> Self {
+        EvolutionScenario {
+            task: task.to_owned(),
+            targets,
+            herders,
+            room: false,
+            episodes,
+        }
+    }
+
+    /// A room-layout scenario.
+    pub fn room(task: &str, targets: usize, herders: usize, episodes: usize) -> Self {
+        EvolutionScenario {
+            room: true,
+            ..EvolutionScenario::paper(task, targets, herders, episodes)
+        }
+    }
+}
+
+/// The evolution stage after MTDDPG (`skyherd_trainer::evolve`): evolution strategies on each
+/// task's own layers, scored by completion time over the lower bound.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct EvolutionConfig {
+    /// Run it (off: the best MTDDPG checkpoint is the result).
+    pub enabled: bool,
+    /// Generations per task.
+    pub generations: usize,
+    /// Antithetic pairs per generation (twice as many actors herd).
+    pub population: usize,
+    /// Noise scale on the parameters.
+    pub sigma: f32,
+    /// Adam step size.
+    pub learning_rate: f32,
+    /// A failed episode scores this many lower bounds.
+    pub failure_ratio: f64,
+    /// Episodes are cut (and count as failed) after this many steps.
+    pub step_limit: u64,
+    /// Check the current heads on held-out seeds every this many generations (and after the last).
+    pub check_every: usize,
+    /// The check herds each scenario this many times its `episodes`.
+    pub check_rounds: usize,
+    /// First seed of the check (apart from the training, warm-start and evaluation seeds).
+    pub check_seed_base: u64,
+    /// What the perturbed actors herd; a task with none is left as it is.
+    pub scenarios: Vec<EvolutionScenario>,
+}
+
+impl Default for EvolutionConfig {
+    fn default() -> Self {
+        EvolutionConfig {
+            enabled: true,
+            generations: 100,
+            population: 16,
+            sigma: 0.02,
+            learning_rate: 0.01,
+            failure_ratio: 12.0,
+            step_limit: 900,
+            check_every: 5,
+            check_rounds: 4,
+            check_seed_base: 3_000_000_000,
+            scenarios: vec![
+                EvolutionScenario::room("driving", 4, 2, 10),
+                EvolutionScenario::paper("driving", 4, 4, 2),
+                EvolutionScenario::paper("driving", 16, 4, 2),
+                EvolutionScenario::paper("driving", 64, 4, 1),
+                EvolutionScenario::paper("driving", 8, 1, 2),
+                EvolutionScenario::paper("driving", 16, 2, 2),
+                EvolutionScenario::paper("collecting", 4, 2, 2),
+                EvolutionScenario::paper("collecting", 16, 4, 2),
+                EvolutionScenario::paper("collecting", 64, 4, 1),
+                EvolutionScenario::paper("collecting", 8, 1, 2),
+                EvolutionScenario::paper("collecting", 32, 2, 1),
+                EvolutionScenario::paper("collecting", 16, 8, 1),
+            ],
+        }
+    }
+}
+
 /// Which shepherding scenarios one curriculum stage draws episodes from.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -308,6 +407,8 @@ pub struct TrainConfig {
     pub reward: RewardConfig,
     /// Held-out evaluation.
     pub eval: EvalConfig,
+    /// Evolution-strategies fine-tuning of the task heads after MTDDPG.
+    pub evolution: EvolutionConfig,
 }
 
 impl Default for TrainConfig {
@@ -322,6 +423,7 @@ impl Default for TrainConfig {
             warm_start: WarmStartConfig::default(),
             reward: RewardConfig::default(),
             eval: EvalConfig::default(),
+            evolution: EvolutionConfig::default(),
         }
     }
 }
@@ -417,6 +519,31 @@ impl TrainConfig {
                 "task must be `driving` or `collecting`",
             );
         }
+        let ev = &self.evolution;
+        if ev.scenarios.iter().any(|s| parse_task(&s.task).is_none()) {
+            return bad("evolution.scenarios", "task must be `driving` or `collecting`");
+        }
+        if ev.scenarios.iter().any(|s| s.targets == 0 || s.episodes == 0) {
+            return bad(
+                "evolution.scenarios",
+                "every scenario needs targets >= 1 and episodes >= 1",
+            );
+        }
+        if !(ev.sigma > 0.0 && ev.sigma.is_finite()) {
+            return bad("evolution.sigma", "must be finite and > 0");
+        }
+        if !(ev.learning_rate > 0.0 && ev.learning_rate.is_finite()) {
+            return bad("evolution.learning_rate", "must be finite and > 0");
+        }
+        if !(ev.failure_ratio >= 1.0 && ev.failure_ratio.is_finite()) {
+            return bad("evolution.failure_ratio", "must be finite and >= 1");
+        }
+        if ev.step_limit == 0 || ev.check_rounds == 0 {
+            return bad(
+                "evolution",
+                "step_limit and check_rounds must be >= 1",
+            );
+        }
         Ok(())
     }
 
@@ -492,6 +619,13 @@ mod tests {
         let err =
             TrainConfig::from_toml_str("[warm_start]\ndriving_baseline = \"nope\"").unwrap_err();
         assert!(err.to_string().contains("warm_start"), "{err}");
+        let err = TrainConfig::from_toml_str("[evolution]\nsigma = 0.0").unwrap_err();
+        assert!(err.to_string().contains("evolution.sigma"), "{err}");
+        let err = TrainConfig::from_toml_str(
+            "[evolution]\nscenarios = [{ task = \"driving\", targets = 4, herders = 2, episodes = 0 }]",
+        )
+        .unwrap_err();
+        assert!(err.to_string().contains("evolution.scenarios"), "{err}");
     }
 
     #[test]

@@ -11,7 +11,8 @@
 //!   `LocalFrame::action_to_world`; any actor as a `skyherd_sim::Policy`.
 //! * [`rollout`]: environments of both tasks stepped together, the learner's reward.
 //! * [`train`]: warm start (behaviour cloning of a rule), MTDDPG with a curriculum over N and
-//!   M, held-out evaluation keeping the best checkpoint. [`config`] documents every knob.
+//!   M, held-out evaluation keeping the best checkpoint; then [`evolve`]: evolution strategies
+//!   on each task's own layers, scored by completion time. [`config`] documents every knob.
 //! * [`checkpoint`]: safetensors checkpoints for `--resume`; [`export`]: the quantizer of
 //!   `skyherd-model` and the int8 parity check; [`eval`], [`report`]: metrics, CSV, PNG.
 //!
@@ -40,6 +41,7 @@ pub mod checkpoint;
 pub mod config;
 pub mod ddpg;
 pub mod eval;
+pub mod evolve;
 pub mod export;
 pub mod network;
 pub mod nn;

@@ -26,7 +26,8 @@ pub enum ReportError {
 /// One line of the CSV log.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct LogRow {
-    /// `0` warm start, `1` DDPG, `2` evaluation.
+    /// `0` warm start, `1` DDPG, `2` evaluation, `3` evolution generation (its held-out check in
+    /// the evaluation columns when one ran).
     pub phase: u8,
     /// Wall-clock seconds since the run started.
     pub wall_s: f64,
@@ -145,7 +146,7 @@ pub fn plot_curve(rows: &[LogRow], path: &Path) -> Result<(), ReportError> {
     let mut chart = ChartBuilder::on(&top)
         .margin(10)
         .caption(
-            "success: training episodes (blue), held-out evaluation (red)",
+            "success: training episodes (blue), held-out evaluation (red), evolution checks (green)",
             (FAMILY, 16),
         )
         .x_label_area_size(30)
@@ -170,6 +171,13 @@ pub fn plot_curve(rows: &[LogRow], path: &Path) -> Result<(), ReportError> {
             rows.iter()
                 .filter(|r| r.phase == 2 && r.eval_success.is_finite())
                 .map(|r| Circle::new((r.wall_s, r.eval_success), 4, RED.filled())),
+        )
+        .map_err(|e| err(&e))?;
+    chart
+        .draw_series(
+            rows.iter()
+                .filter(|r| r.phase == 3 && r.eval_success.is_finite())
+                .map(|r| Circle::new((r.wall_s, r.eval_success), 3, GREEN.filled())),
         )
         .map_err(|e| err(&e))?;
 

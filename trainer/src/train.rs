@@ -10,9 +10,13 @@
 //!    curriculum stage in force.
 //! 3. **Evaluation** on held-out seeds every `eval.every_updates` updates (and after the warm
 //!    start); the best actor by success rate, then time, is kept in `best.safetensors`.
+//! 4. **Evolution** (switchable, [`crate::evolve`]): evolution strategies on each task's own
+//!    layers of the best actor, scored by completion time over the lower bound; the result is
+//!    `evolved.safetensors` (the best checkpoint with the evolved actor), which is what gets
+//!    exported. A resumed run that finished MTDDPG runs this stage again from `best.safetensors`.
 //!
 //! Output in `output_dir`: `last.safetensors` (every `checkpoint_every_s` seconds and at the
-//! end, for `--resume`), `best.safetensors`, `log.csv`, `curve.png`.
+//! end, for `--resume`), `best.safetensors`, `evolved.safetensors`, `log.csv`, `curve.png`.
 
 use std::path::PathBuf;
 use std::time::Instant;
@@ -22,12 +26,14 @@ use rand_chacha::ChaCha8Rng;
 use skyherd_model::Task;
 use skyherd_onboard::obs::FEATURES;
 use skyherd_sim::EnvError;
+use skyherd_sim::task::{parse_task, task_name};
 use thiserror::Error;
 
 use crate::checkpoint::{self, Checkpoint, CheckpointError, Progress};
 use crate::config::TrainConfig;
 use crate::ddpg::{ACTION_DIM, Agent};
 use crate::eval::{EvalRow, EvalScenario, better, evaluate_flat, score};
+use crate::evolve::{Fitness, evolve_task};
 use crate::nn::{Adam, AdamConfig};
 use crate::policy::ActorPolicy;
 use crate::replay::{Batch, ReplayBuffer};
@@ -83,6 +89,137 @@ pub struct TrainOutcome {
     pub last_eval: Vec<EvalRow>,
     /// Mean seconds per DDPG update (NaN when none ran).
     pub seconds_per_update: f64,
+    /// The evolution stage, when enabled.
+    pub evolution: Option<EvolutionOutcome>,
+}
+
+/// What the evolution stage did.
+#[derive(Clone, Debug)]
+pub struct EvolutionOutcome {
+    /// Where the evolved checkpoint is.
+    pub checkpoint: PathBuf,
+    /// Per task tuned: its held-out check before and after.
+    pub tasks: Vec<(Task, Fitness, Fitness)>,
+    /// The evolved actor on the run's held-out evaluation (`eval.scenarios`).
+    pub eval: Vec<EvalRow>,
+    /// Wall-clock seconds the stage took.
+    pub wall_s: f64,
+}
+
+/// Runs the evolution stage (`config.evolution`) on `source`'s actor, each task with
+/// scenarios in turn, logging to `output_dir/log.csv` (phase 3) and writing
+/// `output_dir/evolved.safetensors`: `source` with the evolved actor and the stage's wall time
+/// added. Runs on the current rayon pool.
+pub fn evolve_checkpoint(
+    config: &TrainConfig,
+    source: &Checkpoint,
+    observer: &mut dyn Observer,
+) -> Result<EvolutionOutcome, TrainError> {
+    let started = Instant::now();
+    let dir = config.output_dir.clone();
+    std::fs::create_dir_all(&dir).map_err(ReportError::from)?;
+    let mut log = CsvLog::open(&dir.join("log.csv"))?;
+    let wall_offset = source.progress.wall_time_s;
+    let ev = &config.evolution;
+    let mut actor = source.agent.actor.clone();
+    let mut tasks = Vec::new();
+    for task in Task::ALL {
+        let label = task_name(task);
+        if !ev
+            .scenarios
+            .iter()
+            .any(|s| parse_task(&s.task) == Some(task))
+        {
+            continue;
+        }
+        observer.phase(&format!("evolution: {label} heads"), ev.generations as u64);
+        let mut rows = Vec::new();
+        let out = evolve_task(&actor, task, ev, config.seed, |r| {
+            let check = r.check.map_or(String::new(), |c| {
+                format!(
+                    ", check {:.3} ({:.0}% success, {:.2}x){}",
+                    c.fitness,
+                    100.0 * c.success_rate,
+                    c.time_ratio,
+                    if r.kept { " kept" } else { "" }
+                )
+            });
+            observer.progress(
+                r.generation as u64 + 1,
+                &format!("population {:.3}{check}", r.population_fitness),
+            );
+            rows.push(LogRow {
+                phase: 3,
+                wall_s: wall_offset + started.elapsed().as_secs_f64(),
+                env_steps: source.progress.env_steps,
+                updates: r.generation as u64 + 1,
+                episodes: source.progress.episodes,
+                recent_return: r.population_fitness,
+                recent_success: f64::NAN,
+                critic_loss: f64::NAN,
+                actor_loss: f64::NAN,
+                q_mean: f64::NAN,
+                eval_success: r.check.map_or(f64::NAN, |c| c.success_rate),
+                eval_time_ratio: r.check.map_or(f64::NAN, |c| c.time_ratio),
+            });
+        })?;
+        for row in &rows {
+            log.write(row)?;
+        }
+        observer.note(&format!(
+            "evolution, {label}: held-out check {:.3} -> {:.3} (success {:.0}% -> {:.0}%, time {:.2}x -> {:.2}x)",
+            out.start_check.fitness,
+            out.best_check.fitness,
+            100.0 * out.start_check.success_rate,
+            100.0 * out.best_check.success_rate,
+            out.start_check.time_ratio,
+            out.best_check.time_ratio,
+        ));
+        tasks.push((task, out.start_check, out.best_check));
+        actor = out.actor;
+    }
+    let scenarios: Vec<EvalScenario> = config
+        .eval
+        .scenarios
+        .iter()
+        .filter_map(EvalScenario::from_triple)
+        .collect();
+    let e = &config.eval;
+    let eval = evaluate_flat(&scenarios, e.episodes, e.seed_base, || {
+        ActorPolicy::new(&actor)
+    })?;
+    let s = score(&eval);
+    observer.note(&format!(
+        "evolved actor on the held-out evaluation: success {:.1}%, time {:.2}x lower bound",
+        100.0 * s.0,
+        s.1
+    ));
+    let wall_s = started.elapsed().as_secs_f64();
+    let mut evolved = source.clone();
+    evolved.agent.actor = actor;
+    evolved.progress.wall_time_s = wall_offset + wall_s;
+    let path = dir.join("evolved.safetensors");
+    checkpoint::save(&path, &evolved)?;
+    log.write(&LogRow {
+        phase: 2,
+        wall_s: evolved.progress.wall_time_s,
+        env_steps: source.progress.env_steps,
+        updates: source.agent.updates,
+        episodes: source.progress.episodes,
+        recent_return: f64::NAN,
+        recent_success: f64::NAN,
+        critic_loss: f64::NAN,
+        actor_loss: f64::NAN,
+        q_mean: f64::NAN,
+        eval_success: s.0,
+        eval_time_ratio: s.1,
+    })?;
+    Ok(EvolutionOutcome {
+        checkpoint: path,
+        tasks,
+        eval,
+        wall_s,
+    })
 }
 
 /// Running means over the most recent training episodes.
@@ -487,9 +624,18 @@ fn train_in_pool(
     let seconds_per_update = run.ddpg(observer)?;
     run.evaluate(observer)?;
     run.save_last()?;
+    let evolution = if config.evolution.enabled {
+        let mut best = checkpoint::load(&dir.join("best.safetensors"))?;
+        // The stage's clock starts where the run's ends.
+        best.progress.wall_time_s = run.wall();
+        Some(evolve_checkpoint(config, &best, observer)?)
+    } else {
+        None
+    };
     let rows = read_log(&dir.join("log.csv"))?;
     plot_curve(&rows, &dir.join("curve.png"))?;
     let mut progress = run.progress;
+    // Includes the evolution stage.
     progress.wall_time_s = run.wall();
     Ok(TrainOutcome {
         progress,
@@ -497,6 +643,7 @@ fn train_in_pool(
         last_checkpoint: dir.join("last.safetensors"),
         last_eval: run.last_eval,
         seconds_per_update,
+        evolution,
     })
 }
 

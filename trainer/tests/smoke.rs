@@ -1,5 +1,6 @@
 //! A seconds-long training run through every phase (demonstrations, imitation, critic
-//! pretraining, MTDDPG, evaluation, checkpoints, log, plot), then `--resume`, then export.
+//! pretraining, MTDDPG, evaluation, evolution, checkpoints, log, plot), then `--resume`, then
+//! export.
 
 use skyherd_model::Task;
 use skyherd_trainer::checkpoint;
@@ -32,6 +33,16 @@ fn tiny_config(dir: &std::path::Path) -> TrainConfig {
         every_updates = 100
         episodes = 1
         scenarios = [["driving", 4, 2], ["collecting", 4, 2]]
+        [evolution]
+        generations = 2
+        population = 2
+        step_limit = 40
+        check_every = 1
+        check_rounds = 1
+        scenarios = [
+          {{ task = "driving", targets = 4, herders = 2, room = true, episodes = 1 }},
+          {{ task = "collecting", targets = 4, herders = 2, episodes = 1 }},
+        ]
         "#,
         dir.display()
     ))
@@ -50,6 +61,7 @@ fn tiny_training_runs_resumes_and_exports() {
     assert!(first.seconds_per_update.is_finite());
     for file in [
         "best.safetensors",
+        "evolved.safetensors",
         "last.safetensors",
         "log.csv",
         "curve.png",
@@ -59,6 +71,20 @@ fn tiny_training_runs_resumes_and_exports() {
     let log = read_log(&dir.join("log.csv")).expect("log");
     assert!(log.iter().any(|r| r.phase == 0), "imitation rows");
     assert!(log.iter().any(|r| r.phase == 2), "evaluation rows");
+    assert_eq!(
+        log.iter().filter(|r| r.phase == 3).count(),
+        4,
+        "two evolution generations per task"
+    );
+    let evolution = first.evolution.as_ref().expect("evolution ran");
+    assert_eq!(evolution.tasks.len(), 2);
+    for (task, before, after) in &evolution.tasks {
+        assert!(after.fitness >= before.fitness, "{task:?} kept the best check");
+    }
+    let evolved = checkpoint::load(&evolution.checkpoint).expect("evolved checkpoint");
+    let best = checkpoint::load(&dir.join("best.safetensors")).expect("best checkpoint");
+    assert_eq!(evolved.agent.actor.shared, best.agent.actor.shared);
+    assert_eq!(evolved.agent.critic, best.agent.critic);
     // Imitation reduces its loss.
     let imitation: Vec<f64> = log
         .iter()
@@ -97,6 +123,7 @@ fn the_same_seed_trains_the_same_actor() {
         let _ = std::fs::remove_dir_all(&dir);
         let mut config = tiny_config(&dir);
         config.training.env_steps = 150;
+        config.evolution.enabled = false;
         train(&config, None, &mut Quiet).expect("training runs");
         let c = checkpoint::load(&dir.join("last.safetensors")).expect("checkpoint");
         let _ = std::fs::remove_dir_all(&dir);

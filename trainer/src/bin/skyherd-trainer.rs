@@ -2,7 +2,8 @@
 //!
 //! ```text
 //! skyherd-trainer train  --config trainer/configs/mtddpg-v1.toml [--resume]
-//! skyherd-trainer export --checkpoint runs/mtddpg-v1/best.safetensors --out models/mtddpg-v1.skym
+//! skyherd-trainer evolve --config trainer/configs/mtddpg-v1.toml   # the last stage alone
+//! skyherd-trainer export --checkpoint runs/mtddpg-v1/evolved.safetensors --out models/mtddpg-v1.skym
 //! skyherd-trainer eval   --model models/mtddpg-v1.skym --episodes 20 --baselines
 //! skyherd-trainer plot   --log runs/mtddpg-v1/log.csv --out runs/mtddpg-v1/curve.png
 //! ```
@@ -20,7 +21,8 @@ use skyherd_trainer::config::TrainConfig;
 use skyherd_trainer::eval::{EvalScenario, evaluate_flat, markdown_table};
 use skyherd_trainer::export::{calibration_scenarios, export, parity, record_observations};
 use skyherd_trainer::policy::ActorPolicy;
-use skyherd_trainer::train::{Observer, train};
+use skyherd_trainer::report::read_log;
+use skyherd_trainer::train::{EvolutionOutcome, Observer, evolve_checkpoint, train};
 
 #[derive(Parser)]
 #[command(
@@ -42,6 +44,16 @@ enum Command {
         /// Continue from `<output_dir>/last.safetensors`.
         #[arg(long)]
         resume: bool,
+    },
+    /// Run the evolution stage alone (`[evolution]` of the config) on a checkpoint, writing
+    /// `<output_dir>/evolved.safetensors`; `train` runs it after MTDDPG.
+    Evolve {
+        /// The TOML config.
+        #[arg(long)]
+        config: PathBuf,
+        /// The checkpoint to start from [default: `<output_dir>/best.safetensors`].
+        #[arg(long)]
+        checkpoint: Option<PathBuf>,
     },
     /// Quantize a checkpoint's actor into an int8 model file and check it against the float
     /// actor.
@@ -149,6 +161,27 @@ fn parse_scenario(s: &str) -> Result<EvalScenario> {
         .with_context(|| format!("unknown task in `{s}`"))
 }
 
+fn print_evolution(e: &EvolutionOutcome) {
+    println!(
+        "evolution: {:.0} s -> {}",
+        e.wall_s,
+        e.checkpoint.display()
+    );
+    for (task, before, after) in &e.tasks {
+        println!(
+            "  {}: held-out check {:.3} -> {:.3}, success {:.0}% -> {:.0}%, time {:.2}x -> {:.2}x lower bound",
+            skyherd_sim::task::task_name(*task),
+            before.fitness,
+            after.fitness,
+            100.0 * before.success_rate,
+            100.0 * after.success_rate,
+            before.time_ratio,
+            after.time_ratio
+        );
+    }
+    print!("{}", markdown_table("float (evolved)", &e.eval));
+}
+
 fn main() -> Result<()> {
     let cli = Cli::parse();
     match cli.command {
@@ -187,6 +220,32 @@ fn main() -> Result<()> {
                 outcome.best_checkpoint.display()
             );
             print!("{}", markdown_table("float (last)", &outcome.last_eval));
+            if let Some(e) = &outcome.evolution {
+                print_evolution(e);
+            }
+        }
+        Command::Evolve {
+            config,
+            checkpoint: source,
+        } => {
+            let config = TrainConfig::load(&config)?;
+            let path = source.unwrap_or_else(|| config.output_dir.join("best.safetensors"));
+            let mut c = checkpoint::load(&path)
+                .with_context(|| format!("evolving from {}", path.display()))?;
+            // The stage's clock starts where the run's log ends, as in `train`.
+            if let Ok(rows) = read_log(&config.output_dir.join("log.csv")) {
+                let end = rows.iter().map(|r| r.wall_s).fold(0.0, f64::max);
+                c.progress.wall_time_s = c.progress.wall_time_s.max(end);
+            }
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(config.training.threads)
+                .build()?;
+            let mut bar = Bar { bar: None };
+            let outcome = pool.install(|| evolve_checkpoint(&config, &c, &mut bar))?;
+            if let Some(b) = bar.bar.take() {
+                b.finish();
+            }
+            print_evolution(&outcome);
         }
         Command::Export {
             checkpoint: path,
@@ -247,7 +306,7 @@ fn main() -> Result<()> {
             );
         }
         Command::Plot { log, out } => {
-            skyherd_trainer::report::plot_curve(&skyherd_trainer::report::read_log(&log)?, &out)?;
+            skyherd_trainer::report::plot_curve(&read_log(&log)?, &out)?;
             println!("wrote {}", out.display());
         }
         Command::Eval {

@@ -1,0 +1,406 @@
+//! Evolution-strategies fine-tuning of the task heads: a training aid that optimises what the
+//! evaluation measures (completion time over the lower bound, with failures penalised) directly,
+//! where DDPG's critic could not get the actor past the rule it was cloned from.
+//!
+//! For each task in turn, the parameters of that task's own layers (its input layer and its
+//! output layer, Fig. 2) are perturbed with antithetic Gaussian noise, `theta ± sigma eps`; every
+//! perturbed actor herds the same episodes (common random numbers: one seed set per
+//! generation), each episode scoring `time / lower bound` or `failure_ratio` if it fails; the
+//! centred ranks of the scores weight the noise into a gradient estimate (Salimans et al. 2017)
+//! and Adam takes the step. The shared hidden layers are left alone, so tuning one task never
+//! changes the other's behaviour. Every `check_every` generations the current heads herd a
+//! fixed held-out seed set and the best heads by that check are kept: the result is never worse
+//! on the check than the actor it started from.
+//!
+//! Pure and seeded: the same actor, config and seed give the same heads on any thread count.
+//!
+//! ```
+//! use rand::SeedableRng;
+//! use skyherd_model::Task;
+//! use skyherd_trainer::config::{EvolutionConfig, EvolutionScenario};
+//! use skyherd_trainer::evolve::{evolve_task, head_parameters};
+//! use skyherd_trainer::network::MultiTaskMlp;
+//! use skyherd_trainer::nn::Activation;
+//!
+//! let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
+//! let actor = MultiTaskMlp::new(2, 46, 8, 1, 3, Activation::Tanh, &mut rng);
+//! let config = EvolutionConfig {
+//!     generations: 1,
+//!     population: 2,
+//!     step_limit: 30,
+//!     check_every: 1,
+//!     check_rounds: 1,
+//!     scenarios: vec![EvolutionScenario::paper("driving", 2, 1, 1)],
+//!     ..EvolutionConfig::default()
+//! };
+//! let out = evolve_task(&actor, Task::Driving, &config, 7, |_| {}).unwrap();
+//! // Only the driving head may change.
+//! let collecting = Task::Collecting.index();
+//! assert_eq!(
+//!     head_parameters(&out.actor, collecting),
+//!     head_parameters(&actor, collecting)
+//! );
+//! assert!(out.best_check.fitness <= 0.0);
+//! ```
+
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::StandardNormal;
+use rayon::prelude::*;
+use skyherd_model::Task;
+use skyherd_sim::env::run_episodes_parallel;
+use skyherd_sim::task::parse_task;
+use skyherd_sim::{EnvError, Scenario};
+
+use crate::config::{EvolutionConfig, EvolutionScenario, RewardConfig};
+use crate::network::MultiTaskMlp;
+use crate::policy::ActorPolicy;
+use crate::rollout::{Draw, training_scenario};
+
+/// Seeds of the training episodes start here (generation `g` uses `TRAIN_SEED_BASE + g * 1000`
+/// onwards); the check uses the config's own base, far from both and from the warm start's.
+const TRAIN_SEED_BASE: u64 = 5_000_000_000;
+
+/// How a set of episodes went.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Fitness {
+    /// Minus the mean per-episode score (`time / lower bound`, or the failure ratio): higher is
+    /// better, 0 would be every episode at its lower bound.
+    pub fitness: f64,
+    /// Fraction of episodes that succeeded.
+    pub success_rate: f64,
+    /// Mean `time / lower bound` of the successful episodes (NaN if none).
+    pub time_ratio: f64,
+    /// Episodes run.
+    pub episodes: usize,
+}
+
+/// One generation's report, for the progress bar and the log.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct GenerationReport {
+    /// The task being tuned.
+    pub task: Task,
+    /// Generation index, from 0.
+    pub generation: usize,
+    /// Mean fitness of the perturbed actors this generation (training seeds).
+    pub population_fitness: f64,
+    /// The held-out check of the current heads, if one ran after this generation.
+    pub check: Option<Fitness>,
+    /// Whether that check is the best so far (the heads were kept).
+    pub kept: bool,
+}
+
+/// What [`evolve_task`] returns.
+#[derive(Clone, Debug)]
+pub struct Evolved {
+    /// The actor with the best heads found for the task (the others untouched).
+    pub actor: MultiTaskMlp,
+    /// The held-out check of the starting actor.
+    pub start_check: Fitness,
+    /// The held-out check of the returned actor.
+    pub best_check: Fitness,
+}
+
+/// The task's own parameters, flattened: input layer weights and bias, then output layer
+/// weights and bias.
+pub fn head_parameters(actor: &MultiTaskMlp, task: usize) -> Vec<f32> {
+    let mut v = Vec::new();
+    for layer in [&actor.task_inputs[task], &actor.task_outputs[task]] {
+        v.extend_from_slice(&layer.weights);
+        v.extend_from_slice(&layer.bias);
+    }
+    v
+}
+
+/// Writes `theta` (laid out as [`head_parameters`]) into the task's layers.
+pub fn set_head_parameters(actor: &mut MultiTaskMlp, task: usize, theta: &[f32]) {
+    let mut at = 0;
+    for layer in [&mut actor.task_inputs[task], &mut actor.task_outputs[task]] {
+        for part in [&mut layer.weights, &mut layer.bias] {
+            let n = part.len();
+            part.copy_from_slice(&theta[at..at + n]);
+            at += n;
+        }
+    }
+}
+
+/// The simulator scenario of one configured evolution scenario (test-time noise on).
+pub fn scenario_of(s: &EvolutionScenario, step_limit: u64) -> Option<Scenario> {
+    let task = parse_task(&s.task)?;
+    let draw = Draw {
+        task,
+        targets: s.targets,
+        herders: s.herders,
+        room: s.room,
+    };
+    Some(training_scenario(
+        draw,
+        step_limit,
+        true,
+        &RewardConfig::default(),
+        0.99,
+    ))
+}
+
+/// Herds every scenario's episodes (seeds `seed_base + 100 k + i` for scenario `k`) with
+/// `actor` and scores them.
+pub fn fitness(
+    actor: &MultiTaskMlp,
+    scenarios: &[(Scenario, usize)],
+    failure_ratio: f64,
+    seed_base: u64,
+) -> Result<Fitness, EnvError> {
+    let mut total = 0.0;
+    let mut episodes = 0usize;
+    let mut wins = 0usize;
+    let mut win_ratio = 0.0;
+    for (k, (scenario, count)) in scenarios.iter().enumerate() {
+        let seeds: Vec<u64> = (0..*count as u64)
+            .map(|i| seed_base + 100 * k as u64 + i)
+            .collect();
+        for e in run_episodes_parallel(scenario, &seeds, || ActorPolicy::new(actor))? {
+            episodes += 1;
+            if e.success {
+                let ratio = e.time_s / e.lower_bound_s.max(1e-9);
+                wins += 1;
+                win_ratio += ratio;
+                total += ratio;
+            } else {
+                total += failure_ratio;
+            }
+        }
+    }
+    let n = episodes.max(1) as f64;
+    Ok(Fitness {
+        fitness: -total / n,
+        success_rate: wins as f64 / n,
+        time_ratio: if wins > 0 {
+            win_ratio / wins as f64
+        } else {
+            f64::NAN
+        },
+        episodes,
+    })
+}
+
+/// Tunes `task`'s heads of `actor` as `config` says; `seed` fixes the noise and the episodes.
+/// `on_generation` hears about every generation.
+pub fn evolve_task(
+    actor: &MultiTaskMlp,
+    task: Task,
+    config: &EvolutionConfig,
+    seed: u64,
+    mut on_generation: impl FnMut(&GenerationReport),
+) -> Result<Evolved, EnvError> {
+    let t = task.index();
+    let train: Vec<(Scenario, usize)> = config
+        .scenarios
+        .iter()
+        .filter(|s| parse_task(&s.task) == Some(task))
+        .filter_map(|s| Some((scenario_of(s, config.step_limit)?, s.episodes)))
+        .collect();
+    let check: Vec<(Scenario, usize)> = train
+        .iter()
+        .map(|(s, n)| (s.clone(), n * config.check_rounds))
+        .collect();
+    let check_of = |a: &MultiTaskMlp| fitness(a, &check, config.failure_ratio, config.check_seed_base);
+    let start_check = check_of(actor)?;
+    let mut current = actor.clone();
+    let mut best = (start_check, actor.clone());
+    if train.is_empty() || config.population == 0 {
+        return Ok(Evolved {
+            actor: best.1,
+            start_check,
+            best_check: start_check,
+        });
+    }
+    let mut theta = head_parameters(actor, t);
+    let dim = theta.len();
+    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ (0xE5 + t as u64));
+    let (mut m, mut v) = (vec![0f32; dim], vec![0f32; dim]);
+    let sigma = config.sigma;
+    for generation in 0..config.generations {
+        let noise: Vec<Vec<f32>> = (0..config.population)
+            .map(|_| (0..dim).map(|_| rng.sample(StandardNormal)).collect())
+            .collect();
+        let seed_base = TRAIN_SEED_BASE + 1000 * generation as u64 + 100_000 * t as u64;
+        let scores = noise
+            .par_iter()
+            .map(|eps| {
+                let mut pair = [0.0; 2];
+                for (slot, sign) in [(0, 1.0f32), (1, -1.0)] {
+                    let mut a = current.clone();
+                    let p: Vec<f32> = theta
+                        .iter()
+                        .zip(eps)
+                        .map(|(x, z)| x + sign * sigma * z)
+                        .collect();
+                    set_head_parameters(&mut a, t, &p);
+                    pair[slot] = fitness(&a, &train, config.failure_ratio, seed_base)?.fitness;
+                }
+                Ok(pair)
+            })
+            .collect::<Result<Vec<[f64; 2]>, EnvError>>()?;
+        let weights = centred_rank_differences(&scores);
+        let scale = 1.0 / (config.population as f32 * sigma);
+        let mut grad = vec![0f32; dim];
+        for (w, eps) in weights.iter().zip(&noise) {
+            for (g, z) in grad.iter_mut().zip(eps) {
+                *g += w * z * scale;
+            }
+        }
+        adam_ascent(
+            &mut theta,
+            &grad,
+            &mut m,
+            &mut v,
+            generation + 1,
+            config.learning_rate,
+        );
+        set_head_parameters(&mut current, t, &theta);
+        let population_fitness =
+            scores.iter().map(|p| p[0] + p[1]).sum::<f64>() / (2 * scores.len()) as f64;
+        let mut report = GenerationReport {
+            task,
+            generation,
+            population_fitness,
+            check: None,
+            kept: false,
+        };
+        let last = generation + 1 == config.generations;
+        if (generation + 1) % config.check_every.max(1) == 0 || last {
+            let c = check_of(&current)?;
+            report.check = Some(c);
+            if c.fitness > best.0.fitness {
+                best = (c, current.clone());
+                report.kept = true;
+            }
+        }
+        on_generation(&report);
+    }
+    Ok(Evolved {
+        actor: best.1,
+        start_check,
+        best_check: best.0,
+    })
+}
+
+/// Per antithetic pair, `rank(+) - rank(-)` with ranks centred in `[-0.5, 0.5]`: the fitness
+/// shaping that makes the step blind to the scale of the scores (and to outliers).
+pub fn centred_rank_differences(scores: &[[f64; 2]]) -> Vec<f32> {
+    let n = 2 * scores.len();
+    let mut order: Vec<(f64, usize)> = scores
+        .iter()
+        .enumerate()
+        .flat_map(|(i, p)| [(p[0], 2 * i), (p[1], 2 * i + 1)])
+        .collect();
+    order.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+    let mut rank = vec![0f32; n];
+    let denominator = (n.max(2) - 1) as f32;
+    for (r, &(_, i)) in order.iter().enumerate() {
+        rank[i] = r as f32 / denominator - 0.5;
+    }
+    (0..scores.len())
+        .map(|i| rank[2 * i] - rank[2 * i + 1])
+        .collect()
+}
+
+/// One Adam step uphill (step `t` from 1, default betas).
+fn adam_ascent(theta: &mut [f32], grad: &[f32], m: &mut [f32], v: &mut [f32], t: usize, lr: f32) {
+    let (b1, b2) = (0.9f32, 0.999f32);
+    let t = t.min(i32::MAX as usize) as i32;
+    let (c1, c2) = (1.0 - b1.powi(t), 1.0 - b2.powi(t));
+    for (((p, &g), m), v) in theta.iter_mut().zip(grad).zip(m.iter_mut()).zip(v.iter_mut()) {
+        *m = b1 * *m + (1.0 - b1) * g;
+        *v = b2 * *v + (1.0 - b2) * g * g;
+        *p += lr * (*m / c1) / ((*v / c2).sqrt() + 1e-8);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::nn::Activation;
+
+    fn tiny_actor() -> MultiTaskMlp {
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        MultiTaskMlp::new(2, 46, 8, 1, 3, Activation::Tanh, &mut rng)
+    }
+
+    #[test]
+    fn head_parameters_round_trip_and_leave_the_shared_layers() {
+        let mut a = tiny_actor();
+        let shared = a.shared.clone();
+        let t = Task::Collecting.index();
+        let theta: Vec<f32> = (0..head_parameters(&a, t).len())
+            .map(|i| i as f32)
+            .collect();
+        set_head_parameters(&mut a, t, &theta);
+        assert_eq!(head_parameters(&a, t), theta);
+        assert_eq!(a.shared, shared);
+        assert_eq!(theta.len(), 46 * 8 + 8 + 8 * 3 + 3);
+    }
+
+    #[test]
+    fn ranks_reward_the_better_side_of_each_pair() {
+        // Pair 0: + is best overall; pair 1: - is better.
+        let w = centred_rank_differences(&[[-1.0, -5.0], [-4.0, -2.0]]);
+        assert!(w[0] > 0.0 && w[1] < 0.0, "{w:?}");
+        assert!((w[0] - 1.0).abs() < 1e-6, "best minus worst spans the whole range");
+        // Scale-free: multiplying the scores changes nothing.
+        let v = centred_rank_differences(&[[-10.0, -50.0], [-40.0, -20.0]]);
+        assert_eq!(w, v);
+    }
+
+    #[test]
+    fn adam_climbs_a_concave_bowl() {
+        // Maximise -(x - 3)^2 from 0 with its exact gradient.
+        let (mut x, mut m, mut v) = ([0f32], [0f32], [0f32]);
+        for t in 1..=2000 {
+            let g = [-2.0 * (x[0] - 3.0)];
+            adam_ascent(&mut x, &g, &mut m, &mut v, t, 0.05);
+        }
+        assert!((x[0] - 3.0).abs() < 0.05, "{x:?}");
+    }
+
+    #[test]
+    fn evolution_is_seeded_and_keeps_the_best_check() {
+        let actor = tiny_actor();
+        let config = EvolutionConfig {
+            generations: 2,
+            population: 2,
+            step_limit: 40,
+            check_every: 1,
+            check_rounds: 1,
+            scenarios: vec![EvolutionScenario::paper("driving", 2, 1, 1)],
+            ..EvolutionConfig::default()
+        };
+        let mut reports = Vec::new();
+        let a = evolve_task(&actor, Task::Driving, &config, 5, |r| reports.push(*r)).unwrap();
+        let b = evolve_task(&actor, Task::Driving, &config, 5, |_| {}).unwrap();
+        assert_eq!(a.actor, b.actor, "same seed, same heads");
+        assert_eq!(reports.len(), 2);
+        assert!(reports.iter().all(|r| r.check.is_some()));
+        assert!(a.best_check.fitness >= a.start_check.fitness);
+        let kept = reports.iter().any(|r| r.kept);
+        assert_eq!(a.actor != actor, kept, "the heads change exactly when a check improved");
+        assert_eq!(a.actor.shared, actor.shared);
+        let c = Task::Collecting.index();
+        assert_eq!(head_parameters(&a.actor, c), head_parameters(&actor, c));
+    }
+
+    #[test]
+    fn a_task_without_scenarios_is_returned_unchanged() {
+        let actor = tiny_actor();
+        let config = EvolutionConfig {
+            generations: 3,
+            population: 2,
+            step_limit: 20,
+            check_rounds: 1,
+            scenarios: vec![EvolutionScenario::paper("driving", 2, 1, 1)],
+            ..EvolutionConfig::default()
+        };
+        let out = evolve_task(&actor, Task::Collecting, &config, 1, |_| {}).unwrap();
+        assert_eq!(out.actor, actor);
+    }
+}
