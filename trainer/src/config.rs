@@ -521,9 +521,16 @@ impl TrainConfig {
         }
         let ev = &self.evolution;
         if ev.scenarios.iter().any(|s| parse_task(&s.task).is_none()) {
-            return bad("evolution.scenarios", "task must be `driving` or `collecting`");
+            return bad(
+                "evolution.scenarios",
+                "task must be `driving` or `collecting`",
+            );
         }
-        if ev.scenarios.iter().any(|s| s.targets == 0 || s.episodes == 0) {
+        if ev
+            .scenarios
+            .iter()
+            .any(|s| s.targets == 0 || s.episodes == 0)
+        {
             return bad(
                 "evolution.scenarios",
                 "every scenario needs targets >= 1 and episodes >= 1",
@@ -539,10 +546,7 @@ impl TrainConfig {
             return bad("evolution.failure_ratio", "must be finite and >= 1");
         }
         if ev.step_limit == 0 || ev.check_rounds == 0 {
-            return bad(
-                "evolution",
-                "step_limit and check_rounds must be >= 1",
-            );
+            return bad("evolution", "step_limit and check_rounds must be >= 1");
         }
         Ok(())
     }

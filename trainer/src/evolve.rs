@@ -203,7 +203,8 @@ pub fn evolve_task(
         .iter()
         .map(|(s, n)| (s.clone(), n * config.check_rounds))
         .collect();
-    let check_of = |a: &MultiTaskMlp| fitness(a, &check, config.failure_ratio, config.check_seed_base);
+    let check_of =
+        |a: &MultiTaskMlp| fitness(a, &check, config.failure_ratio, config.check_seed_base);
     let start_check = check_of(actor)?;
     let mut current = actor.clone();
     let mut best = (start_check, actor.clone());
@@ -310,7 +311,12 @@ fn adam_ascent(theta: &mut [f32], grad: &[f32], m: &mut [f32], v: &mut [f32], t:
     let (b1, b2) = (0.9f32, 0.999f32);
     let t = t.min(i32::MAX as usize) as i32;
     let (c1, c2) = (1.0 - b1.powi(t), 1.0 - b2.powi(t));
-    for (((p, &g), m), v) in theta.iter_mut().zip(grad).zip(m.iter_mut()).zip(v.iter_mut()) {
+    for (((p, &g), m), v) in theta
+        .iter_mut()
+        .zip(grad)
+        .zip(m.iter_mut())
+        .zip(v.iter_mut())
+    {
         *m = b1 * *m + (1.0 - b1) * g;
         *v = b2 * *v + (1.0 - b2) * g * g;
         *p += lr * (*m / c1) / ((*v / c2).sqrt() + 1e-8);
@@ -346,7 +352,10 @@ mod tests {
         // Pair 0: + is best overall; pair 1: - is better.
         let w = centred_rank_differences(&[[-1.0, -5.0], [-4.0, -2.0]]);
         assert!(w[0] > 0.0 && w[1] < 0.0, "{w:?}");
-        assert!((w[0] - 1.0).abs() < 1e-6, "best minus worst spans the whole range");
+        assert!(
+            (w[0] - 1.0).abs() < 1e-6,
+            "best minus worst spans the whole range"
+        );
         // Scale-free: multiplying the scores changes nothing.
         let v = centred_rank_differences(&[[-10.0, -50.0], [-40.0, -20.0]]);
         assert_eq!(w, v);
@@ -383,7 +392,11 @@ mod tests {
         assert!(reports.iter().all(|r| r.check.is_some()));
         assert!(a.best_check.fitness >= a.start_check.fitness);
         let kept = reports.iter().any(|r| r.kept);
-        assert_eq!(a.actor != actor, kept, "the heads change exactly when a check improved");
+        assert_eq!(
+            a.actor != actor,
+            kept,
+            "the heads change exactly when a check improved"
+        );
         assert_eq!(a.actor.shared, actor.shared);
         let c = Task::Collecting.index();
         assert_eq!(head_parameters(&a.actor, c), head_parameters(&actor, c));

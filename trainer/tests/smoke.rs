@@ -79,7 +79,10 @@ fn tiny_training_runs_resumes_and_exports() {
     let evolution = first.evolution.as_ref().expect("evolution ran");
     assert_eq!(evolution.tasks.len(), 2);
     for (task, before, after) in &evolution.tasks {
-        assert!(after.fitness >= before.fitness, "{task:?} kept the best check");
+        assert!(
+            after.fitness >= before.fitness,
+            "{task:?} kept the best check"
+        );
     }
     let evolved = checkpoint::load(&evolution.checkpoint).expect("evolved checkpoint");
     let best = checkpoint::load(&dir.join("best.safetensors")).expect("best checkpoint");

@@ -162,11 +162,7 @@ fn parse_scenario(s: &str) -> Result<EvalScenario> {
 }
 
 fn print_evolution(e: &EvolutionOutcome) {
-    println!(
-        "evolution: {:.0} s -> {}",
-        e.wall_s,
-        e.checkpoint.display()
-    );
+    println!("evolution: {:.0} s -> {}", e.wall_s, e.checkpoint.display());
     for (task, before, after) in &e.tasks {
         println!(
             "  {}: held-out check {:.3} -> {:.3}, success {:.0}% -> {:.0}%, time {:.2}x -> {:.2}x lower bound",
