@@ -80,7 +80,7 @@ fn daemon_log(run: &Run, drone: usize) -> String {
 }
 
 /// The paper's indoor test through the full MAVLink loop. The paper's drones finish in 30 s; the
-/// shipped model takes about 34 s on seed 0 here (34-46 s on seeds 0-7; 27-34 s in the simulator
+/// shipped model takes about 35 s on seed 0 here (32-39 s on seeds 0-7; 28-35 s in the simulator
 /// alone, `skyherd-sim run --scenario indoor`). The loop differs from the simulator in tracked
 /// rather than true positions, the 0.25 m fence and the 0.5 m altitude floor. This asserts
 /// a bound the previous model (Lama clone, 57 s with today's room physics, 123 s before) misses,

@@ -140,6 +140,7 @@ impl Default for EvolutionConfig {
                 EvolutionScenario::paper("driving", 64, 4, 1),
                 EvolutionScenario::paper("driving", 8, 1, 2),
                 EvolutionScenario::paper("driving", 16, 2, 2),
+                EvolutionScenario::paper("driving", 128, 4, 1),
                 EvolutionScenario::paper("collecting", 4, 2, 2),
                 EvolutionScenario::paper("collecting", 16, 4, 2),
                 EvolutionScenario::paper("collecting", 64, 4, 1),

@@ -372,10 +372,9 @@ mod tests {
         assert!((x[0] - 3.0).abs() < 0.05, "{x:?}");
     }
 
-    #[test]
-    fn evolution_is_seeded_and_keeps_the_best_check() {
-        let actor = tiny_actor();
-        let config = EvolutionConfig {
+    /// Two generations of two pairs on one short driving scenario, checked every generation.
+    fn tiny_config() -> EvolutionConfig {
+        EvolutionConfig {
             generations: 2,
             population: 2,
             step_limit: 40,
@@ -383,7 +382,13 @@ mod tests {
             check_rounds: 1,
             scenarios: vec![EvolutionScenario::paper("driving", 2, 1, 1)],
             ..EvolutionConfig::default()
-        };
+        }
+    }
+
+    #[test]
+    fn evolution_is_seeded_and_keeps_the_best_check() {
+        let actor = tiny_actor();
+        let config = tiny_config();
         let mut reports = Vec::new();
         let a = evolve_task(&actor, Task::Driving, &config, 5, |r| reports.push(*r)).unwrap();
         let b = evolve_task(&actor, Task::Driving, &config, 5, |_| {}).unwrap();
@@ -405,15 +410,7 @@ mod tests {
     #[test]
     fn a_task_without_scenarios_is_returned_unchanged() {
         let actor = tiny_actor();
-        let config = EvolutionConfig {
-            generations: 3,
-            population: 2,
-            step_limit: 20,
-            check_rounds: 1,
-            scenarios: vec![EvolutionScenario::paper("driving", 2, 1, 1)],
-            ..EvolutionConfig::default()
-        };
-        let out = evolve_task(&actor, Task::Collecting, &config, 1, |_| {}).unwrap();
+        let out = evolve_task(&actor, Task::Collecting, &tiny_config(), 1, |_| {}).unwrap();
         assert_eq!(out.actor, actor);
     }
 }

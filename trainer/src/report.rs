@@ -53,6 +53,33 @@ pub struct LogRow {
     pub eval_time_ratio: f64,
 }
 
+impl LogRow {
+    /// A held-out evaluation row (phase 2): `score` is (success rate, time ratio); the training
+    /// columns are NaN.
+    pub fn evaluation(
+        wall_s: f64,
+        env_steps: u64,
+        updates: u64,
+        episodes: u64,
+        score: (f64, f64),
+    ) -> LogRow {
+        LogRow {
+            phase: 2,
+            wall_s,
+            env_steps,
+            updates,
+            episodes,
+            recent_return: f64::NAN,
+            recent_success: f64::NAN,
+            critic_loss: f64::NAN,
+            actor_loss: f64::NAN,
+            q_mean: f64::NAN,
+            eval_success: score.0,
+            eval_time_ratio: score.1,
+        }
+    }
+}
+
 const HEADER: &str = "phase,wall_s,env_steps,updates,episodes,recent_return,recent_success,critic_loss,actor_loss,q_mean,eval_success,eval_time_ratio";
 
 /// An append-only CSV log.

@@ -200,20 +200,13 @@ pub fn evolve_checkpoint(
     evolved.progress.wall_time_s = wall_offset + wall_s;
     let path = dir.join("evolved.safetensors");
     checkpoint::save(&path, &evolved)?;
-    log.write(&LogRow {
-        phase: 2,
-        wall_s: evolved.progress.wall_time_s,
-        env_steps: source.progress.env_steps,
-        updates: source.agent.updates,
-        episodes: source.progress.episodes,
-        recent_return: f64::NAN,
-        recent_success: f64::NAN,
-        critic_loss: f64::NAN,
-        actor_loss: f64::NAN,
-        q_mean: f64::NAN,
-        eval_success: s.0,
-        eval_time_ratio: s.1,
-    })?;
+    log.write(&LogRow::evaluation(
+        evolved.progress.wall_time_s,
+        source.progress.env_steps,
+        source.agent.updates,
+        source.progress.episodes,
+        s,
+    ))?;
     Ok(EvolutionOutcome {
         checkpoint: path,
         tasks,
@@ -326,20 +319,13 @@ impl Run<'_> {
             s.1,
             if improved { " (new best)" } else { "" }
         ));
-        self.log.write(&LogRow {
-            phase: 2,
-            wall_s: self.wall(),
-            env_steps: self.progress.env_steps,
-            updates: self.agent.updates,
-            episodes: self.progress.episodes,
-            recent_return: f64::NAN,
-            recent_success: f64::NAN,
-            critic_loss: f64::NAN,
-            actor_loss: f64::NAN,
-            q_mean: f64::NAN,
-            eval_success: s.0,
-            eval_time_ratio: s.1,
-        })?;
+        self.log.write(&LogRow::evaluation(
+            self.wall(),
+            self.progress.env_steps,
+            self.agent.updates,
+            self.progress.episodes,
+            s,
+        ))?;
         self.last_eval = rows;
         Ok(())
     }
