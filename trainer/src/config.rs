@@ -27,6 +27,7 @@ use skyherd_sim::task::parse_task;
 use thiserror::Error;
 
 use crate::ddpg::{DdpgConfig, NetworkConfig};
+use crate::eval::EvalScenario;
 
 /// Why a configuration was rejected.
 #[derive(Debug, Error)]
@@ -118,6 +119,15 @@ pub struct EvolutionConfig {
     pub check_seed_base: u64,
     /// What the perturbed actors herd; a task with none is left as it is.
     pub scenarios: Vec<EvolutionScenario>,
+}
+
+impl EvolutionConfig {
+    /// The configured scenarios of `task`.
+    pub fn scenarios_of(&self, task: Task) -> impl Iterator<Item = &EvolutionScenario> {
+        self.scenarios
+            .iter()
+            .filter(move |s| parse_task(&s.task) == Some(task))
+    }
 }
 
 impl Default for EvolutionConfig {
@@ -313,6 +323,17 @@ pub struct EvalConfig {
     pub seed_base: u64,
     /// `(task, N, M)` triples evaluated, with test-time noise; M = 0 is adaptive.
     pub scenarios: Vec<(String, usize, usize)>,
+}
+
+impl EvalConfig {
+    /// The evaluated scenarios (triples with an unknown task, which validation rejects, are
+    /// skipped).
+    pub fn scenario_list(&self) -> Vec<EvalScenario> {
+        self.scenarios
+            .iter()
+            .filter_map(EvalScenario::from_triple)
+            .collect()
+    }
 }
 
 impl Default for EvalConfig {

@@ -133,6 +133,7 @@ pub fn scenario_of(s: &EvolutionScenario, step_limit: u64) -> Option<Scenario> {
         herders: s.herders,
         room: s.room,
     };
+    // The score reads only success and time, so the reward settings do not matter here.
     Some(training_scenario(
         draw,
         step_limit,
@@ -194,9 +195,7 @@ pub fn evolve_task(
 ) -> Result<Evolved, EnvError> {
     let t = task.index();
     let train: Vec<(Scenario, usize)> = config
-        .scenarios
-        .iter()
-        .filter(|s| parse_task(&s.task) == Some(task))
+        .scenarios_of(task)
         .filter_map(|s| Some((scenario_of(s, config.step_limit)?, s.episodes)))
         .collect();
     let check: Vec<(Scenario, usize)> = train

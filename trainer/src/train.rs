@@ -26,7 +26,7 @@ use rand_chacha::ChaCha8Rng;
 use skyherd_model::Task;
 use skyherd_onboard::obs::FEATURES;
 use skyherd_sim::EnvError;
-use skyherd_sim::task::{parse_task, task_name};
+use skyherd_sim::task::task_name;
 use thiserror::Error;
 
 use crate::checkpoint::{self, Checkpoint, CheckpointError, Progress};
@@ -125,11 +125,7 @@ pub fn evolve_checkpoint(
     let mut tasks = Vec::new();
     for task in Task::ALL {
         let label = task_name(task);
-        if !ev
-            .scenarios
-            .iter()
-            .any(|s| parse_task(&s.task) == Some(task))
-        {
+        if ev.scenarios_of(task).next().is_none() {
             continue;
         }
         observer.phase(&format!("evolution: {label} heads"), ev.generations as u64);
@@ -178,12 +174,7 @@ pub fn evolve_checkpoint(
         tasks.push((task, out.start_check, out.best_check));
         actor = out.actor;
     }
-    let scenarios: Vec<EvalScenario> = config
-        .eval
-        .scenarios
-        .iter()
-        .filter_map(EvalScenario::from_triple)
-        .collect();
+    let scenarios = config.eval.scenario_list();
     let e = &config.eval;
     let eval = evaluate_flat(&scenarios, e.episodes, e.seed_base, || {
         ActorPolicy::new(&actor)
@@ -581,12 +572,7 @@ fn train_in_pool(
             .wrapping_add(progress.env_steps)
             .wrapping_add(3),
     );
-    let eval_scenarios = config
-        .eval
-        .scenarios
-        .iter()
-        .filter_map(EvalScenario::from_triple)
-        .collect();
+    let eval_scenarios = config.eval.scenario_list();
     let mut run = Run {
         config,
         agent,

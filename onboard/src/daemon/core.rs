@@ -655,24 +655,24 @@ impl<P: Policy> DaemonCore<P> {
         };
         let age_ms = now.since(*received);
         let max_speed = self.config.max_speed.min(world.max_speed);
-        // Own entry replaced by the autopilot's position, which is fresher than the ground's
-        // track; appended if the ground does not track this drone yet.
-        self.herders.clear();
-        self.herders.extend_from_slice(&world.herders);
-        let own_index = if self.config.herder_index < self.herders.len() {
-            self.herders[self.config.herder_index] = own;
-            self.config.herder_index
-        } else {
-            self.herders.push(own);
-            self.herders.len() - 1
-        };
         let mut limits = Limits::arena(world.area, max_speed);
         limits.max_snapshot_age_s = self.config.uplink_timeout_ms as f32 / 1000.0;
         // The actor learned to herd from as low as the ground; this drone may not fly below
         // its altitude band, so it reads its height above the band's floor (feature 22): held
         // at the floor, it is as low as it can go, as the actor expects. Only the encoding
         // sees this; the safety rules below get the true position.
-        self.herders[own_index][2] = (own[2] - limits.fence_min[2]).max(0.0);
+        let encoded_own = [own[0], own[1], (own[2] - limits.fence_min[2]).max(0.0)];
+        // Own entry replaced by the autopilot's position, which is fresher than the ground's
+        // track; appended if the ground does not track this drone yet.
+        self.herders.clear();
+        self.herders.extend_from_slice(&world.herders);
+        let own_index = if self.config.herder_index < self.herders.len() {
+            self.herders[self.config.herder_index] = encoded_own;
+            self.config.herder_index
+        } else {
+            self.herders.push(encoded_own);
+            self.herders.len() - 1
+        };
         let (request, own_reason) = if age_ms > self.config.uplink_timeout_ms {
             ([0.0; 3], Some(HoldReason::UplinkStale { age_ms }))
         } else {
