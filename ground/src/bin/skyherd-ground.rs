@@ -26,7 +26,7 @@ use skyherd_ground::link::{GroundLink, LinkConfig};
 use skyherd_ground::mission::{
     AbortReason, DroneReport, MissionAction, MissionControl, MissionPlan, Phase,
 };
-use skyherd_ground::tracking::{Tracker, TrackerConfig};
+use skyherd_ground::tracking::{TrackedWorld, Tracker, TrackerConfig};
 use skyherd_ground::uplink::{SnapshotInputs, UplinkEncoder};
 use skyherd_onboard::Task;
 use skyherd_onboard::wire::MissionAction as WireAction;
@@ -93,6 +93,10 @@ struct MissionArgs {
     /// Tracker measurement noise, metres (standard deviation).
     #[arg(long, default_value_t = 0.1)]
     measurement_std: f64,
+    /// Time between the sensor's scans, seconds (widens the tracker's gate to what a target
+    /// can move between two of them).
+    #[arg(long, default_value_t = 0.1)]
+    scan_period: f64,
     /// Give up when no scan arrives for this long, wall seconds.
     #[arg(long, default_value_t = 10.0)]
     idle_timeout: f64,
@@ -257,18 +261,13 @@ fn mission(args: MissionArgs) -> Result<()> {
     plan.time_limit_s = args.time_limit;
     let mut mission = MissionControl::new(plan);
     // The tracker's defaults are for the paper's arena (45 m goal, 5 m/s herders); a smaller
-    // world scales its lengths with the goal radius and its speeds with the speed limit.
-    let length = f64::from(args.goal_radius) / 45.0;
-    let speed = f64::from(args.max_speed) / 5.0;
-    let defaults = TrackerConfig::default();
-    let mut tracker = Tracker::new(TrackerConfig {
+    // world scales them (see `TrackerConfig::scaled`).
+    let mut tracker = Tracker::new(TrackerConfig::scaled(TrackedWorld {
+        goal_radius: f64::from(args.goal_radius),
+        max_speed: f64::from(args.max_speed),
         measurement_std: args.measurement_std,
-        acceleration_std: defaults.acceleration_std * speed * speed / length,
-        initial_velocity_std: defaults.initial_velocity_std * speed,
-        max_gate_radius: (defaults.max_gate_radius * length).max(5.0 * args.measurement_std),
-        birth_exclusion_radius: defaults.birth_exclusion_radius * length,
-        ..defaults
-    })?;
+        scan_period_s: args.scan_period,
+    }))?;
     let mut uplink = UplinkEncoder::new();
     let mut assembler = ScanAssembler::default();
     let mut last_scan: Option<f64> = None;

@@ -202,6 +202,8 @@ fn main() -> Result<()> {
         .arg(world.targets.len().to_string())
         .arg("--measurement-std")
         .arg(scenario.noise.sensing_std.max(1e-3).to_string())
+        .arg("--scan-period")
+        .arg(sitl.config().sensor_period_s.to_string())
         .arg("--key")
         .arg(&key_path)
         .arg("--tlog")

@@ -356,7 +356,21 @@ impl MockAutopilot {
 
     /// Advance to `now`: apply failsafes, integrate the vehicle's own kinematics (first
     /// order: it flies the commanded velocity), drain the battery, and emit due telemetry.
+    /// The same as [`fly`](Self::fly) then [`telemetry`](Self::telemetry).
     pub fn tick(&mut self, now: f64) -> Tick {
+        let velocity_ned = self.fly(now);
+        Tick {
+            velocity_ned,
+            telemetry: self.telemetry(now),
+        }
+    }
+
+    /// Advance to `now` without reporting: failsafes, kinematics, battery. Returns the velocity
+    /// the vehicle flies (m/s, NED; zero when holding). A lockstep simulator calls this, moves
+    /// the world, feeds the true state back with [`set_state`](Self::set_state) and only then
+    /// asks for [`telemetry`](Self::telemetry), so the reported position is the one after the
+    /// move, as a real autopilot reports its latest estimate.
+    pub fn fly(&mut self, now: f64) -> [f64; 3] {
         let external = self.mode == self.config.flavour.external_mode();
         let since_setpoint = self.last_setpoint.map_or(f64::INFINITY, |t| now - t);
         if external
@@ -385,7 +399,12 @@ impl MockAutopilot {
         }
         self.velocity_ned = command;
         self.last_tick = Some(now);
+        command
+    }
 
+    /// The telemetry due at `now` (HEARTBEAT and SYS_STATUS every status period,
+    /// LOCAL_POSITION_NED at the position rate), from the current state.
+    pub fn telemetry(&mut self, now: f64) -> Vec<MavMessage> {
         let mut telemetry = Vec::new();
         if now >= self.next_status {
             self.next_status = now + self.config.status_period;
@@ -396,10 +415,7 @@ impl MockAutopilot {
             self.next_position = now + 1.0 / self.config.position_rate_hz;
             telemetry.push(self.local_position(now));
         }
-        Tick {
-            velocity_ned: command,
-            telemetry,
-        }
+        telemetry
     }
 
     fn heartbeat(&self) -> MavMessage {

@@ -4,17 +4,20 @@
 //!
 //! One tick is [`SitlConfig::tick_s`] of simulated time (0.1 s: autopilots report positions at
 //! 10 Hz, daemons answer each one):
-//! 1. every live autopilot node receives what arrived, flies its current setpoint and sends its
-//!    telemetry stamped with the simulated time;
+//! 1. every live autopilot node receives what arrived and flies its current setpoint;
 //! 2. the world advances one tick with the velocities the autopilots fly (herders first, as in
 //!    [`crate::world::advance`]), and each autopilot is told where the world put its drone;
 //! 3. on sensor ticks the detection sensor scans the targets and sends the scan (MAVLink
-//!    `DEBUG_VECT`, see `skyherd_ground::detections`) to the ground station;
-//! 4. **lockstep**: every drone whose daemon is streaming setpoints is waited for (up to
-//!    [`SitlConfig::lockstep_timeout`] of wall time) until it has answered this tick's position,
-//!    so the loop runs as fast as the processes allow and never outruns them; likewise the
-//!    ground station's acknowledgement of the latest scan (`det_ack`), so the snapshots the
-//!    drones fly on are as fresh as the world.
+//!    `DEBUG_VECT`, see `skyherd_ground::detections`) to the ground station, and the loop waits
+//!    (up to [`SitlConfig::lockstep_timeout`] of wall time) for the ground's acknowledgement
+//!    (`det_ack`), sent once it has tracked the scan and sent its snapshot up;
+//! 4. every autopilot sends its telemetry, stamped with the simulated time: the position the
+//!    world just put it at. A daemon answers each position, so it decides on its own position
+//!    and targets of the same instant, as a policy does in the simulator (the other drones'
+//!    positions in the snapshot are one tick older: the ground hears them in step 4);
+//! 5. **lockstep**: every drone whose daemon is streaming setpoints is waited for (up to the
+//!    lockstep timeout) until it has answered this tick's position, so the loop runs as fast as
+//!    the processes allow and never outruns them. The answer is flown in the next tick's step 1.
 //!
 //! The world is integrated with the tick as its time step: for the `indoor` preset that is the
 //! scenario's own 0.1 s; for the paper presets (1 s steps) it integrates the same velocity field
@@ -236,6 +239,11 @@ impl SitlWorld {
             .collect()
     }
 
+    /// The configuration the world runs with.
+    pub fn config(&self) -> &SitlConfig {
+        &self.config
+    }
+
     /// The true world.
     pub fn world(&self) -> &World {
         &self.world
@@ -311,12 +319,12 @@ impl SitlWorld {
         {
             *slot = None;
         }
-        // 1. Autopilots: receive, fly, report.
+        // 1. Autopilots: receive and fly (they report after the world has moved, step 4).
         let mut flying = 0;
         for (i, slot) in self.nodes.iter_mut().enumerate() {
             self.actions[i] = match slot {
                 Some(node) => {
-                    let v = ned_to_sim(node.step(t)?);
+                    let v = ned_to_sim(node.receive_and_fly(t)?);
                     let ap = node.autopilot();
                     if ap.armed() && ap.mode() == ap.config().flavour.external_mode() {
                         flying += 1;
@@ -371,6 +379,12 @@ impl SitlWorld {
         }
         self.time_s = t;
         self.wait_for_ground()?;
+        // 4. The autopilots report where the world put them. After the ground has turned the
+        // scan into a snapshot, so a daemon answering this position flies on targets seen at
+        // the same instant, as a policy does in the simulator.
+        for node in self.nodes.iter_mut().flatten() {
+            node.send_telemetry(t)?;
+        }
         // The truth decides the episode.
         if self.ending.is_none() {
             if self.world.anything_outside() {
@@ -384,7 +398,7 @@ impl SitlWorld {
                 self.ending = Some((Ending::TimeLimit, t));
             }
         }
-        // 4. Lockstep: wait for every streaming daemon's answer to this tick's position.
+        // 5. Lockstep: wait for every streaming daemon's answer to this tick's position.
         let all_streaming = self.wait_for_answers(t)?;
         if self.flight_start.is_none() && !all_streaming {
             thread::sleep(self.config.pre_flight_pace);

@@ -107,6 +107,40 @@ impl AutopilotNode {
     /// # Errors
     /// Socket errors other than "nothing to read" or an unreachable peer.
     pub fn step(&mut self, now: f64) -> io::Result<[f64; 3]> {
+        let velocity = self.receive_and_fly(now)?;
+        self.send_telemetry(now)?;
+        Ok(velocity)
+    }
+
+    /// The first half of [`step`](Self::step): receive, answer commands and fly to `now`,
+    /// without reporting. Returns the velocity the vehicle flies (m/s, NED).
+    ///
+    /// # Errors
+    /// Socket errors other than "nothing to read" or an unreachable peer.
+    pub fn receive_and_fly(&mut self, now: f64) -> io::Result<[f64; 3]> {
+        self.receive(now)?;
+        let velocity = self.autopilot.fly(now);
+        self.out.flush(now)?;
+        Ok(velocity)
+    }
+
+    /// The second half of [`step`](Self::step): send the telemetry due at `now` from the
+    /// autopilot's current state (after a simulator's `set_state`) to every peer.
+    ///
+    /// # Errors
+    /// Socket errors other than an unreachable peer.
+    pub fn send_telemetry(&mut self, now: f64) -> io::Result<()> {
+        for message in self.autopilot.telemetry(now) {
+            let bytes = self.codec.encode(&message);
+            for peer in self.peers.clone() {
+                self.out.send_to(&bytes, peer, now)?;
+            }
+        }
+        self.out.flush(now)
+    }
+
+    /// Receives what arrived, lets due datagrams through the fault plan and answers commands.
+    fn receive(&mut self, now: f64) -> io::Result<()> {
         loop {
             match self.out.socket().recv_from(&mut self.buffer) {
                 Ok((n, from)) => {
@@ -132,15 +166,7 @@ impl AutopilotNode {
                 }
             }
         }
-        let tick = self.autopilot.tick(now);
-        for message in &tick.telemetry {
-            let bytes = self.codec.encode(message);
-            for peer in self.peers.clone() {
-                self.out.send_to(&bytes, peer, now)?;
-            }
-        }
-        self.out.flush(now)?;
-        Ok(tick.velocity_ned)
+        Ok(())
     }
 
     /// Run on a thread against the wall clock at `rate_hz` until `stop` is set (for peers
