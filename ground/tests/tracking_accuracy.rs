@@ -217,5 +217,8 @@ fn indoor_room_keeps_kicked_vehicles_as_one_track_each() {
     let narrow = wrong_counts(length_only);
     eprintln!("indoor: wrong track count in {scaled} of 290 scans (length-only gate: {narrow})");
     assert!(scaled <= 3, "wrong count in {scaled} scans");
-    assert!(narrow > scaled, "the narrow gate should be worse: {narrow} vs {scaled}");
+    assert!(
+        narrow > scaled,
+        "the narrow gate should be worse: {narrow} vs {scaled}"
+    );
 }

@@ -326,12 +326,19 @@ pub struct CoreCounters {
     pub commands_sent: u64,
 }
 
+/// How long after an accepted arm or mode command a heartbeat contradicting it is taken for
+/// one sent before the command (1.5 heartbeat periods at 1 Hz), ms.
+pub const COMMAND_ACCEPTED_GRACE_MS: u64 = 1500;
+
 /// What the autopilot last told us.
 #[derive(Clone, Copy, Debug, Default)]
 struct AutopilotView {
     last_heard: Option<Millis>,
     armed: bool,
     in_control_mode: bool,
+    /// When the autopilot last accepted our arm / mode command (see `on_command_accepted`).
+    arm_accepted_at: Option<Millis>,
+    mode_accepted_at: Option<Millis>,
     /// Own position, simulator frame, and when it arrived.
     position: Option<([f32; 3], Millis)>,
 }
@@ -409,6 +416,13 @@ impl<P: Policy> DaemonCore<P> {
         self.counters
     }
 
+    /// Ground timestamp (ms) of the newest world snapshot accepted, if any.
+    pub fn snapshot_timestamp_ms(&self) -> Option<u64> {
+        self.world
+            .as_ref()
+            .map(|(snapshot, _)| snapshot.timestamp_ms)
+    }
+
     /// Own position (simulator frame, metres) as last reported by the autopilot.
     pub fn own_position(&self) -> Option<[f32; 3]> {
         self.autopilot.position.map(|(p, _)| p)
@@ -428,9 +442,39 @@ impl<P: Policy> DaemonCore<P> {
                 self.config.flavour.control_mode_name()
             );
         }
-        self.autopilot.armed = armed;
-        self.autopilot.in_control_mode = in_mode;
+        // A heartbeat sent before the autopilot accepted our command can arrive after its
+        // acknowledgement; within the grace period it does not undo what was acknowledged.
+        let fresh = |accepted: Option<Millis>| {
+            accepted.is_none_or(|at| now.since(at) > COMMAND_ACCEPTED_GRACE_MS)
+        };
+        if armed || fresh(self.autopilot.arm_accepted_at) {
+            self.autopilot.armed = armed;
+        }
+        if in_mode || fresh(self.autopilot.mode_accepted_at) {
+            self.autopilot.in_control_mode = in_mode;
+        }
         self.autopilot.last_heard = Some(now);
+    }
+
+    /// The autopilot accepted one of our commands (COMMAND_ACK with MAV_RESULT_ACCEPTED): it
+    /// is armed, or in the control mode, from now, instead of from its next HEARTBEAT (up to a
+    /// second later at 1 Hz, a second the drones would hover after takeoff). Heartbeats stay
+    /// the authority: one that says otherwise after [`COMMAND_ACCEPTED_GRACE_MS`] (a pilot's
+    /// switch away, a disarm) wins.
+    pub fn on_command_accepted(&mut self, now: Millis, command: AutopilotCommand) {
+        match command {
+            AutopilotCommand::Arm => {
+                self.autopilot.armed = true;
+                self.autopilot.arm_accepted_at = Some(now);
+            }
+            AutopilotCommand::SetMode { custom_main_mode }
+                if custom_main_mode == self.config.flavour.control_mode() =>
+            {
+                self.autopilot.in_control_mode = true;
+                self.autopilot.mode_accepted_at = Some(now);
+            }
+            AutopilotCommand::SetMode { .. } => {}
+        }
     }
 
     /// An autopilot LOCAL_POSITION_NED: position `[north, east, down]`, metres.
@@ -865,6 +909,43 @@ mod tests {
         let d = c.tick(Millis(1300));
         assert_eq!(d.status, Status::Flying(Reasons::NONE));
         assert_eq!(d.command, None);
+    }
+
+    #[test]
+    fn accepted_commands_count_before_the_next_heartbeat_and_stale_ones_do_not_undo_them() {
+        let mut c = core(Flavour::Px4);
+        autopilot(&mut c, 0, false, 0);
+        c.on_uplink(Millis(0), start());
+        c.on_uplink(Millis(0), snapshot(1));
+        assert_eq!(c.tick(Millis(0)).command, Some(AutopilotCommand::Arm));
+        // The ACK arrives; the heartbeat that still says "disarmed" was sent before it.
+        c.on_command_accepted(Millis(100), AutopilotCommand::Arm);
+        autopilot(&mut c, 100, false, 0);
+        assert_eq!(
+            c.tick(Millis(100)).status,
+            Status::Preparing(Preparing::Streaming)
+        );
+        // After 1.2 s of stream: the mode switch, accepted, flies at once.
+        autopilot(&mut c, 1200, true, 0);
+        let d = c.tick(Millis(1200));
+        assert_eq!(
+            d.command,
+            Some(AutopilotCommand::SetMode {
+                custom_main_mode: 6
+            })
+        );
+        c.on_command_accepted(Millis(1300), d.command.unwrap());
+        autopilot(&mut c, 1300, true, 0);
+        c.on_uplink(Millis(1300), snapshot(2));
+        assert_eq!(c.tick(Millis(1300)).status, Status::Flying(Reasons::NONE));
+        // A heartbeat past the grace period that says otherwise wins: a pilot took over.
+        let later = 1300 + COMMAND_ACCEPTED_GRACE_MS + 100;
+        autopilot(&mut c, later, true, 0);
+        c.on_uplink(Millis(later), snapshot(3));
+        assert_eq!(
+            c.tick(Millis(later)).status,
+            Status::Holding(HoldReason::ControlReleased)
+        );
     }
 
     #[test]

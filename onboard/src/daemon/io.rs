@@ -15,7 +15,8 @@
 //!
 //! Clocks ([`ClockMode`]): wall clock (ticks at `--rate-hz`), or lockstep with a simulator, where
 //! the daemon's time is the autopilot's `time_boot_ms` and every LOCAL_POSITION_NED triggers one
-//! control tick, so the loop runs as fast as the simulator feeds it.
+//! control tick, answered at least with a HEARTBEAT to the autopilot (the simulator waits for
+//! that answer), so the loop runs as fast as the simulator feeds it.
 
 use std::fmt;
 use std::io;
@@ -64,7 +65,9 @@ pub enum ClockMode {
         /// Control rate, Hz (>= 10 for PX4 OFFBOARD).
         rate_hz: f32,
     },
-    /// The autopilot's `time_boot_ms`; one control tick per LOCAL_POSITION_NED.
+    /// The autopilot's `time_boot_ms`; one control tick per LOCAL_POSITION_NED. The ground's
+    /// snapshots are expected on the same simulated clock: a tick waits briefly for the
+    /// snapshot of its instant (see `LOCKSTEP_SNAPSHOT_WAIT`).
     Simulator,
 }
 
@@ -358,6 +361,17 @@ pub struct Daemon<P> {
 /// How long reader threads block before looking at the stop flag.
 const READ_TIMEOUT: Duration = Duration::from_millis(100);
 
+/// Lockstep: longest wall-time wait for the snapshot of a position's instant.
+pub const LOCKSTEP_SNAPSHOT_WAIT: Duration = Duration::from_millis(20);
+
+/// Whether a snapshot stamped `snapshot_ms` (the ground's clock) is older than the position
+/// of `now` (the autopilot's clock), both simulated time in lockstep. A millisecond of slack
+/// absorbs their different rounding. No snapshot at all is behind too: the ground's first one
+/// (and the mission command it sends just before) may be on its way.
+pub fn snapshot_is_behind(snapshot_ms: Option<u64>, now: Millis) -> bool {
+    snapshot_ms.is_none_or(|ms| ms + 1 < now.0)
+}
+
 /// Opens a link. UDP addresses are bound here (rather than inside `mavlink::connect`) so that
 /// the bound address is known (`udpin:127.0.0.1:0` picks a free port) and reads time out.
 fn open_link(link: &'static str, address: &str) -> Result<(Link, Option<SocketAddr>), IoError> {
@@ -583,11 +597,26 @@ impl<P: Policy> Daemon<P> {
                 }
                 self.handle(now, event);
                 if position_time.is_some() {
+                    self.await_snapshot_of(now);
                     self.tick(now);
+                    // Ends the lockstep answer to every position, whatever the tick decided
+                    // (sent after its setpoint and command, on the same link): the simulator
+                    // waits for it before the next step, so even the pre-flight (idle,
+                    // arming: no setpoints yet) does not race the wall clock.
+                    self.send_autopilot_heartbeat();
                 }
             }
             if now >= next_heartbeat {
-                self.send_heartbeats();
+                match self.clock {
+                    ClockMode::Wall { .. } => self.send_heartbeats(),
+                    // Until the first position the autopilot needs one to learn where we
+                    // are; from then on it gets one with every tick's answer, and only then:
+                    // the simulator takes it for the end of that answer.
+                    ClockMode::Simulator if self.core.own_position().is_none() => {
+                        self.send_heartbeats();
+                    }
+                    ClockMode::Simulator => self.send_ground_heartbeat(),
+                }
                 next_heartbeat = Millis(now.0 + HEARTBEAT_PERIOD_MS);
             }
         }
@@ -597,6 +626,27 @@ impl<P: Policy> Daemon<P> {
             self.core.counters()
         );
         Ok(())
+    }
+
+    /// Lockstep only. The simulator's ground station stamps its snapshots on the simulated
+    /// clock and sends the snapshot of an instant before the autopilots report that instant's
+    /// positions, but the two links have two reader threads, so the snapshot can reach this
+    /// thread just after the position. Wait (at most [`LOCKSTEP_SNAPSHOT_WAIT`] of wall time,
+    /// handling whatever arrives) until the newest snapshot is of `now`, so that which one the
+    /// actor sees (and whether the mission command sent just before it has arrived) does not
+    /// depend on thread scheduling. When none comes (no mission yet, an uplink cut), the tick
+    /// goes on with what there is after the wait.
+    fn await_snapshot_of(&mut self, now: Millis) {
+        let deadline = Instant::now() + LOCKSTEP_SNAPSHOT_WAIT;
+        while snapshot_is_behind(self.core.snapshot_timestamp_ms(), now) {
+            let Some(left) = deadline.checked_duration_since(Instant::now()) else {
+                return;
+            };
+            match self.events.recv_timeout(left) {
+                Ok(event) => self.handle(now, event),
+                Err(_) => return,
+            }
+        }
     }
 
     fn is_our_autopilot(&self, header: &MavHeader) -> bool {
@@ -635,8 +685,22 @@ impl<P: Policy> Daemon<P> {
             MavMessage::COMMAND_ACK(ack) => {
                 self.counters.autopilot.received += 1;
                 match ack.result {
-                    MavResult::MAV_RESULT_ACCEPTED | MavResult::MAV_RESULT_IN_PROGRESS => {
+                    MavResult::MAV_RESULT_ACCEPTED => {
                         info!("autopilot accepted {:?}", ack.command);
+                        // We only ever arm and switch to our control mode.
+                        let command = match ack.command {
+                            MavCmd::MAV_CMD_COMPONENT_ARM_DISARM => Some(AutopilotCommand::Arm),
+                            MavCmd::MAV_CMD_DO_SET_MODE => Some(AutopilotCommand::SetMode {
+                                custom_main_mode: self.core.config().flavour.control_mode(),
+                            }),
+                            _ => None,
+                        };
+                        if let Some(command) = command {
+                            self.core.on_command_accepted(now, command);
+                        }
+                    }
+                    MavResult::MAV_RESULT_IN_PROGRESS => {
+                        info!("autopilot working on {:?}", ack.command);
                     }
                     result => {
                         self.counters.autopilot.commands_refused += 1;
@@ -782,18 +846,33 @@ impl<P: Policy> Daemon<P> {
     }
 
     fn send_heartbeats(&mut self) {
-        let message = MavMessage::HEARTBEAT(HEARTBEAT_DATA {
-            custom_mode: 0,
-            mavtype: MavType::MAV_TYPE_ONBOARD_CONTROLLER,
-            autopilot: MavAutopilot::MAV_AUTOPILOT_INVALID,
-            base_mode: MavModeFlag::empty(),
-            system_status: MavState::MAV_STATE_ACTIVE,
-            mavlink_version: 3,
-        });
+        let message = heartbeat();
         self.send_autopilot(&message);
         self.send_to_ground(&message);
         self.counters.heartbeats_sent += 1;
     }
+
+    fn send_autopilot_heartbeat(&mut self) {
+        self.send_autopilot(&heartbeat());
+        self.counters.heartbeats_sent += 1;
+    }
+
+    fn send_ground_heartbeat(&mut self) {
+        self.send_to_ground(&heartbeat());
+        self.counters.heartbeats_sent += 1;
+    }
+}
+
+/// Our HEARTBEAT: an onboard controller, active.
+fn heartbeat() -> MavMessage {
+    MavMessage::HEARTBEAT(HEARTBEAT_DATA {
+        custom_mode: 0,
+        mavtype: MavType::MAV_TYPE_ONBOARD_CONTROLLER,
+        autopilot: MavAutopilot::MAV_AUTOPILOT_INVALID,
+        base_mode: MavModeFlag::empty(),
+        system_status: MavState::MAV_STATE_ACTIVE,
+        mavlink_version: 3,
+    })
 }
 
 impl<P> Drop for Daemon<P> {
@@ -907,6 +986,16 @@ mod tests {
                 assert_eq!(c.accepted, 0, "{c:?}");
             }
         }
+    }
+
+    #[test]
+    fn lockstep_waits_for_a_snapshot_older_than_the_position_or_none() {
+        assert!(snapshot_is_behind(None, Millis(5000)));
+        assert!(snapshot_is_behind(Some(4900), Millis(5000)));
+        // The ground rounds, the autopilot truncates: 0.3 s is 300 vs 299 ms.
+        assert!(!snapshot_is_behind(Some(300), Millis(299)));
+        assert!(!snapshot_is_behind(Some(299), Millis(300)));
+        assert!(!snapshot_is_behind(Some(5100), Millis(5000)));
     }
 
     #[test]

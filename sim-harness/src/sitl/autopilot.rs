@@ -99,6 +99,9 @@ impl AutopilotConfig {
     }
 }
 
+/// `MAV_COMP_ID_ONBOARD_COMPUTER`: the companion computer's component id.
+pub const MAV_COMP_ID_ONBOARD_COMPUTER: u8 = 191;
+
 /// PX4 accepts OFFBOARD only after setpoints streamed this long (s)...
 pub const PX4_STREAM_BEFORE_OFFBOARD: f64 = 1.0;
 /// ...with no gap longer than this (s): i.e. faster than 2 Hz.
@@ -145,6 +148,7 @@ pub struct MockAutopilot {
     velocity_ned: [f64; 3],
     setpoint: [f64; 3],
     last_setpoint: Option<f64>,
+    companion_heartbeat_at: Option<f64>,
     stream_start: Option<f64>,
     failsafe_events: u64,
     battery_pct: f64,
@@ -167,6 +171,7 @@ impl MockAutopilot {
             velocity_ned: [0.0; 3],
             setpoint: [0.0; 3],
             last_setpoint: None,
+            companion_heartbeat_at: None,
             stream_start: None,
             failsafe_events: 0,
             battery_pct: 100.0,
@@ -177,8 +182,15 @@ impl MockAutopilot {
         }
     }
 
-    /// When (s) the last accepted velocity setpoint arrived; lets a lockstep loop wait for the
-    /// companion computer's answer to the latest position.
+    /// When (s) the last HEARTBEAT arrived from this vehicle's companion computer (its own
+    /// system id, component [`MAV_COMP_ID_ONBOARD_COMPUTER`]). In lockstep the onboard daemon
+    /// ends its answer to every position with one (after any setpoint and command, on the same
+    /// link), so a lockstep loop waits for it.
+    pub fn companion_heartbeat_at(&self) -> Option<f64> {
+        self.companion_heartbeat_at
+    }
+
+    /// When (s) the last accepted velocity setpoint arrived.
     pub fn last_setpoint_at(&self) -> Option<f64> {
         self.last_setpoint
     }
@@ -230,7 +242,12 @@ impl MockAutopilot {
         message: &MavMessage,
         now: f64,
     ) -> Vec<MavMessage> {
-        let _ = header;
+        if header.system_id == u32::from(self.config.system_id)
+            && header.component_id == MAV_COMP_ID_ONBOARD_COMPUTER
+            && matches!(message, MavMessage::HEARTBEAT(_))
+        {
+            self.companion_heartbeat_at = Some(now);
+        }
         match message {
             MavMessage::COMMAND_LONG(c) => self.on_command(c, now).into_iter().collect(),
             MavMessage::SET_POSITION_TARGET_LOCAL_NED(s) => {
@@ -400,6 +417,14 @@ impl MockAutopilot {
         self.velocity_ned = command;
         self.last_tick = Some(now);
         command
+    }
+
+    /// Restart the telemetry schedule at `now`: everything falls due then, and the periodic
+    /// messages follow from there. A lockstep simulator calls this when simulated time starts,
+    /// so the heartbeat phase does not depend on how long a wall-clock pre-roll took.
+    pub fn restart_telemetry(&mut self, now: f64) {
+        self.next_status = now;
+        self.next_position = now;
     }
 
     /// The telemetry due at `now` (HEARTBEAT and SYS_STATUS every status period,

@@ -15,8 +15,9 @@
 //!    world just put it at. A daemon answers each position, so it decides on its own position
 //!    and targets of the same instant, as a policy does in the simulator (the other drones'
 //!    positions in the snapshot are one tick older: the ground hears them in step 4);
-//! 5. **lockstep**: every drone whose daemon is streaming setpoints is waited for (up to the
-//!    lockstep timeout) until it has answered this tick's position, so the loop runs as fast as
+//! 5. **lockstep**: every drone whose daemon has been heard is waited for (up to the lockstep
+//!    timeout) until it has answered this tick's position (the daemon ends each answer with a
+//!    heartbeat, so the pre-flight, before any setpoint, is in lockstep too), so the loop runs as fast as
 //!    the processes allow and never outruns them. The answer is flown in the next tick's step 1.
 //!
 //! The world is integrated with the tick as its time step: for the `indoor` preset that is the
@@ -73,12 +74,16 @@ pub struct SitlConfig {
     pub time_limit_s: f64,
     /// Cut drone `index` off (its autopilot stops, its herder holds) at simulated time `t`.
     pub lose_drone: Option<(usize, f64)>,
+    /// The ground station acknowledges every scan (`skyherd-ground` does): wait for that from
+    /// the first scan on. Otherwise the loop waits only once an acknowledgement has come, and
+    /// until then whether the ground saw a tick's telemetry before its scan is a race.
+    pub ground_acks_scans: bool,
 }
 
 impl SitlConfig {
     /// Defaults for a scenario: 0.1 s ticks and scans, sensor noise from the scenario's sensing
     /// noise with 95 % detection and no false alarms, 50 ms lockstep wait, as fast as
-    /// possible, the scenario's step limit as time limit.
+    /// possible, the scenario's step limit as time limit, a ground that acknowledges scans.
     pub fn new(scenario: Scenario, seed: u64, ground: SocketAddr) -> Self {
         let sensor = SensorConfig {
             position_std: scenario.noise.sensing_std,
@@ -101,8 +106,14 @@ impl SitlConfig {
             pre_flight_pace: Duration::from_millis(10),
             time_limit_s,
             lose_drone: None,
+            ground_acks_scans: true,
         }
     }
+}
+
+/// The detection sensor's seed for an episode seed.
+fn sensor_seed(seed: u64) -> u64 {
+    seed ^ 0x5EA5_0000
 }
 
 /// Why the SITL world could not run.
@@ -203,11 +214,12 @@ impl SitlWorld {
             )?;
             nodes.push(Some(node));
         }
-        let sensor = DetectionSensor::new(config.sensor.clone(), config.seed ^ 0x5EA5_0000)?;
+        let sensor = DetectionSensor::new(config.sensor.clone(), sensor_seed(config.seed))?;
         let sensor_socket = UdpSocket::bind("127.0.0.1:0")?;
         sensor_socket.set_nonblocking(true)?;
         let sensor_codec = Codec::new(SENSOR_SYSTEM_ID, 1, config.signing.clone());
         let herders = world.herders.len();
+        let ground_acking = config.ground_acks_scans;
         Ok(Self {
             config,
             world,
@@ -225,7 +237,7 @@ impl SitlWorld {
             before: Vec::with_capacity(herders),
             wall_start: Instant::now(),
             lockstep_misses: 0,
-            ground_acking: false,
+            ground_acking,
             acked_scan: f64::NEG_INFINITY,
             ack_frames: Vec::new(),
         })
@@ -283,21 +295,32 @@ impl SitlWorld {
             .sum()
     }
 
-    /// Pre-roll: step the autopilots on the wall clock (the world does not move) until every one
-    /// has heard from its daemon, or `timeout` passes; returns whether all did. Simulated time
-    /// then goes on from the pre-roll's end, so delayed datagrams still fall due.
+    /// Pre-roll: let the autopilots listen on the wall clock (the world does not move, nothing
+    /// is reported) until every one has heard its daemon's heartbeat, or `timeout` passes;
+    /// returns whether all did. Simulated time
+    /// then goes on from the next whole second after the pre-roll (never back, so delayed
+    /// datagrams still fall due).
     pub fn wait_for_daemons(&mut self, timeout: Duration) -> Result<bool, SitlError> {
         let start = Instant::now();
         loop {
             let mut all = true;
             let now = start.elapsed().as_secs_f64();
             for node in self.nodes.iter_mut().flatten() {
-                node.step(now)?;
-                all &= node.codec_stats().frames > 0;
+                // Listen only: a position now would start the daemon's control ticks on the
+                // pre-roll's wall clock, and what it made of the ground's first messages
+                // would depend on that clock.
+                node.receive_and_fly(now)?;
+                all &= node.autopilot().companion_heartbeat_at().is_some();
             }
             if all {
+                // Simulated time goes on from the next whole second, not the wall time the
+                // pre-roll happened to take, so the episode's tick times are the same each run.
+                let now = now.ceil();
                 self.time_s = now;
                 self.next_scan = now;
+                for node in self.nodes.iter_mut().flatten() {
+                    node.autopilot_mut().restart_telemetry(now);
+                }
                 self.wall_start = Instant::now()
                     - Duration::from_secs_f64(now / self.config.speed.max(1e-9))
                         .min(start.elapsed());
@@ -334,11 +357,23 @@ impl SitlWorld {
                 None => [0.0; 3],
             };
         }
-        // 2. The world, with the velocities flown; then the autopilots follow the world.
+        let live = self.nodes.iter().flatten().count();
+        if self.flight_start.is_none() && live > 0 && flying == live {
+            self.flight_start = Some(t);
+            // The episode's sensor noise starts with the episode, not after however many
+            // scans the pre-flight took.
+            self.sensor.reseed(sensor_seed(self.config.seed));
+        }
+        // 2. The world, with the velocities flown; then the autopilots follow the world. Until
+        // every drone flies it holds still: the vehicles are released at takeoff, as a
+        // simulator episode starts at step 0, so how long the processes take to arm and switch
+        // modes (wall time) does not change the episode.
         self.before.clear();
         self.before.extend_from_slice(&self.world.herders);
         let before = &self.before;
-        advance(&mut self.world, &self.actions, &mut self.scratch)?;
+        if self.flight_start.is_some() {
+            advance(&mut self.world, &self.actions, &mut self.scratch)?;
+        }
         for (i, slot) in self.nodes.iter_mut().enumerate() {
             if let Some(node) = slot {
                 let p = self.world.herders[i];
@@ -349,10 +384,6 @@ impl SitlWorld {
                 ];
                 node.autopilot_mut().set_state(sim_to_ned(p), sim_to_ned(v));
             }
-        }
-        let live = self.nodes.iter().flatten().count();
-        if self.flight_start.is_none() && live > 0 && flying == live {
-            self.flight_start = Some(t);
         }
         if self.flight_start.is_some() && self.ending.is_none() {
             self.path_length += before
@@ -452,24 +483,30 @@ impl SitlWorld {
         }
     }
 
-    /// Returns whether every live drone is streaming.
+    /// Waits until every live drone whose companion has been heard answers this tick's
+    /// position (in lockstep the daemon ends its answer to each one with a heartbeat, after
+    /// any setpoint or command). Returns whether every live drone is streaming setpoints.
     fn wait_for_answers(&mut self, t: f64) -> Result<bool, SitlError> {
         let start = Instant::now();
-        let streaming = |node: &AutopilotNode| {
+        let unanswered = |node: &AutopilotNode| {
             node.autopilot()
-                .last_setpoint_at()
-                .is_some_and(|at| t - at <= 1.0)
+                .companion_heartbeat_at()
+                .is_some_and(|at| at < t - 1e-9)
         };
         loop {
             let mut waiting = false;
             for node in self.nodes.iter_mut().flatten() {
-                if streaming(node) && node.autopilot().last_setpoint_at() < Some(t - 1e-9) {
+                if unanswered(node) {
                     // Same `t`: the autopilot receives without moving or re-sending telemetry.
                     node.step(t)?;
-                    waiting |= node.autopilot().last_setpoint_at() < Some(t - 1e-9);
+                    waiting |= unanswered(node);
                 }
             }
-            let all_streaming = self.nodes.iter().flatten().all(streaming);
+            let all_streaming = self.nodes.iter().flatten().all(|node| {
+                node.autopilot()
+                    .last_setpoint_at()
+                    .is_some_and(|at| t - at <= 1.0)
+            });
             if !waiting {
                 return Ok(all_streaming);
             }

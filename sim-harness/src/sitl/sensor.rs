@@ -76,6 +76,11 @@ impl DetectionSensor {
         })
     }
 
+    /// Restarts the random stream from `seed`, as if the sensor were new.
+    pub fn reseed(&mut self, seed: u64) {
+        self.rng = ChaCha8Rng::seed_from_u64(seed);
+    }
+
     /// One scan of `targets` (true positions, m, sim frame): each seen with probability
     /// `p_detect`, with Gaussian noise, plus false alarms, shuffled so that the order carries
     /// no identity.
