@@ -362,7 +362,7 @@ pub struct Daemon<P> {
 const READ_TIMEOUT: Duration = Duration::from_millis(100);
 
 /// Lockstep: longest wall-time wait for the snapshot of a position's instant.
-pub const LOCKSTEP_SNAPSHOT_WAIT: Duration = Duration::from_millis(20);
+pub const LOCKSTEP_SNAPSHOT_WAIT: Duration = Duration::from_millis(50);
 
 /// Whether a snapshot stamped `snapshot_ms` (the ground's clock) is older than the position
 /// of `now` (the autopilot's clock), both simulated time in lockstep. A millisecond of slack
