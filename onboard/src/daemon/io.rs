@@ -361,8 +361,11 @@ pub struct Daemon<P> {
 /// How long reader threads block before looking at the stop flag.
 const READ_TIMEOUT: Duration = Duration::from_millis(100);
 
-/// Lockstep: longest wall-time wait for the snapshot of a position's instant.
-pub const LOCKSTEP_SNAPSHOT_WAIT: Duration = Duration::from_millis(50);
+/// Lockstep: longest wall-time wait for the snapshot of a position's instant. Keep it well
+/// under the simulator's own wait for the answer (`SitlConfig::lockstep_timeout`, 50 ms):
+/// before the mission starts no snapshot comes, every tick waits this long, and an answer later
+/// than the simulator waits would land in the next tick.
+pub const LOCKSTEP_SNAPSHOT_WAIT: Duration = Duration::from_millis(20);
 
 /// Whether a snapshot stamped `snapshot_ms` (the ground's clock) is older than the position
 /// of `now` (the autopilot's clock), both simulated time in lockstep. A millisecond of slack
