@@ -460,7 +460,9 @@ impl<P: Policy> DaemonCore<P> {
     /// is armed, or in the control mode, from now, instead of from its next HEARTBEAT (up to a
     /// second later at 1 Hz, a second the drones would hover after takeoff). Heartbeats stay
     /// the authority: one that says otherwise after [`COMMAND_ACCEPTED_GRACE_MS`] (a pilot's
-    /// switch away, a disarm) wins.
+    /// switch away, a disarm) wins. (The ACK names no requester in the dialect as built, so a
+    /// forwarded ACK of another client's mode switch could pass for ours; the autopilot then
+    /// ignores our setpoints anyway, and the release is noticed one grace period later.)
     pub fn on_command_accepted(&mut self, now: Millis, command: AutopilotCommand) {
         match command {
             AutopilotCommand::Arm => {

@@ -16,9 +16,14 @@
 //!    and targets of the same instant, as a policy does in the simulator (the other drones'
 //!    positions in the snapshot are one tick older: the ground hears them in step 4);
 //! 5. **lockstep**: every drone whose daemon has been heard is waited for (up to the lockstep
-//!    timeout) until it has answered this tick's position (the daemon ends each answer with a
-//!    heartbeat, so the pre-flight, before any setpoint, is in lockstep too), so the loop runs as fast as
-//!    the processes allow and never outruns them. The answer is flown in the next tick's step 1.
+//!    timeout) until it has answered this tick's position. The daemon ends each answer with a
+//!    heartbeat, so the pre-flight, before any setpoint, is in lockstep too. The loop runs as
+//!    fast as the processes allow and never outruns them; the answer is flown in the next
+//!    tick's step 1.
+//!
+//! Nothing depends on how long anything takes in wall time: the pre-roll only listens,
+//! simulated time starts on the next whole second, the world holds still until every drone
+//! flies, and the sensor's noise restarts at takeoff. A seed reproduces its mission.
 //!
 //! The world is integrated with the tick as its time step: for the `indoor` preset that is the
 //! scenario's own 0.1 s; for the paper presets (1 s steps) it integrates the same velocity field
@@ -297,9 +302,8 @@ impl SitlWorld {
 
     /// Pre-roll: let the autopilots listen on the wall clock (the world does not move, nothing
     /// is reported) until every one has heard its daemon's heartbeat, or `timeout` passes;
-    /// returns whether all did. Simulated time
-    /// then goes on from the next whole second after the pre-roll (never back, so delayed
-    /// datagrams still fall due).
+    /// returns whether all did. Simulated time then goes on from the next whole second after
+    /// the pre-roll (never back, so delayed datagrams still fall due).
     pub fn wait_for_daemons(&mut self, timeout: Duration) -> Result<bool, SitlError> {
         let start = Instant::now();
         loop {
