@@ -5,7 +5,8 @@
 //! the model, over many seeds, and prints the completion times:
 //!
 //! * `tracked`: the model sees the ground's tracks (`TrackerConfig::scaled`, fed by the SITL
-//!   detection sensor: 2 cm noise, 95 % detection) instead of the simulator's noisy truth;
+//!   detection sensor, `SensorConfig::for_scenario`: 2 cm noise, 95 % detection) instead of the
+//!   simulator's noisy truth;
 //!   `narrow-gate` the same with the tracker gate scaled by length alone, as it was before;
 //! * `fence+floor`: the onboard safety rules (`Limits::arena`: 0.25 m fence, 0.5 m floor) trim
 //!   every command, and the encoder reads the height above the floor, as the daemon does;
@@ -20,6 +21,7 @@ use skyherd_ground::tracking::{TrackedWorld, Tracker, TrackerConfig};
 use skyherd_onboard::safety::{self, Limits, Situation};
 use skyherd_sim::learned::ModelPolicy;
 use skyherd_sim::policy::{Policy, PolicyFactory};
+use skyherd_sim::sitl::mission::sensor_seed;
 use skyherd_sim::sitl::sensor::{DetectionSensor, SensorConfig};
 use skyherd_sim::world::World;
 use skyherd_sim::{Env, Scenario, run_episode};
@@ -40,6 +42,7 @@ struct LoopLike {
     model: Box<dyn Policy + Send>,
     effects: Effects,
     limits: Limits,
+    sensor: SensorConfig,
     tracking: Option<(DetectionSensor, Tracker)>,
     tracks: Vec<[f64; 2]>,
     previous_herders: Vec<[f64; 3]>,
@@ -59,6 +62,7 @@ impl LoopLike {
             model,
             effects,
             limits: Limits::arena(area, scenario.limits.herder as f32),
+            sensor: SensorConfig::for_scenario(scenario),
             tracking: None,
             tracks: Vec::new(),
             previous_herders: Vec::new(),
@@ -94,20 +98,13 @@ impl Policy for LoopLike {
         self.herders_now.clear();
         self.tracks.clear();
         self.tracking = self.effects.tracked.then(|| {
-            let sensor = DetectionSensor::new(
-                SensorConfig {
-                    position_std: 0.02,
-                    p_detect: 0.95,
-                    false_alarms_per_scan: 0.0,
-                    area: [world.area.width, world.area.depth],
-                },
-                seed ^ 0x5EA5_0000,
-            )
-            .expect("a valid sensor");
+            let sensor = DetectionSensor::new(self.sensor.clone(), sensor_seed(seed))
+                .expect("a valid sensor");
+            // As `skyherd-sitl` configures the ground's tracker.
             let mut config = TrackerConfig::scaled(TrackedWorld {
                 goal_radius: world.goal.radius,
                 max_speed: world.limits.herder,
-                measurement_std: 0.02,
+                measurement_std: self.sensor.position_std.max(1e-3),
                 scan_period_s: world.dt,
             });
             if self.effects.narrow_gate {

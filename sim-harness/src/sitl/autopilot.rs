@@ -190,11 +190,6 @@ impl MockAutopilot {
         self.companion_heartbeat_at
     }
 
-    /// When (s) the last accepted velocity setpoint arrived.
-    pub fn last_setpoint_at(&self) -> Option<f64> {
-        self.last_setpoint
-    }
-
     /// Configuration.
     pub fn config(&self) -> &AutopilotConfig {
         &self.config

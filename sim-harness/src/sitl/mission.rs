@@ -72,9 +72,6 @@ pub struct SitlConfig {
     pub lockstep_timeout: Duration,
     /// 0 = as fast as possible; 1 = real time; k = k times real time.
     pub speed: f64,
-    /// Wall time per tick until every drone streams setpoints: the processes need real time to
-    /// hear each other, arm and switch modes before lockstep can hold them.
-    pub pre_flight_pace: Duration,
     /// Give up this many simulated seconds after the start of flight.
     pub time_limit_s: f64,
     /// Cut drone `index` off (its autopilot stops, its herder holds) at simulated time `t`.
@@ -90,12 +87,7 @@ impl SitlConfig {
     /// noise with 95 % detection and no false alarms, 50 ms lockstep wait, as fast as
     /// possible, the scenario's step limit as time limit, a ground that acknowledges scans.
     pub fn new(scenario: Scenario, seed: u64, ground: SocketAddr) -> Self {
-        let sensor = SensorConfig {
-            position_std: scenario.noise.sensing_std,
-            p_detect: 0.95,
-            false_alarms_per_scan: 0.0,
-            area: [scenario.area.width, scenario.area.depth],
-        };
+        let sensor = SensorConfig::for_scenario(&scenario);
         let time_limit_s = scenario.step_limit as f64 * scenario.dt;
         Self {
             scenario,
@@ -108,7 +100,6 @@ impl SitlConfig {
             sensor,
             lockstep_timeout: Duration::from_millis(50),
             speed: 0.0,
-            pre_flight_pace: Duration::from_millis(10),
             time_limit_s,
             lose_drone: None,
             ground_acks_scans: true,
@@ -117,7 +108,7 @@ impl SitlConfig {
 }
 
 /// The detection sensor's seed for an episode seed.
-fn sensor_seed(seed: u64) -> u64 {
+pub fn sensor_seed(seed: u64) -> u64 {
     seed ^ 0x5EA5_0000
 }
 
@@ -433,11 +424,8 @@ impl SitlWorld {
                 self.ending = Some((Ending::TimeLimit, t));
             }
         }
-        // 5. Lockstep: wait for every streaming daemon's answer to this tick's position.
-        let all_streaming = self.wait_for_answers(t)?;
-        if self.flight_start.is_none() && !all_streaming {
-            thread::sleep(self.config.pre_flight_pace);
-        }
+        // 5. Lockstep: wait for every daemon's answer to this tick's position.
+        self.wait_for_answers(t)?;
         if self.config.speed > 0.0 {
             let due = Duration::from_secs_f64(t / self.config.speed);
             if let Some(rest) = due.checked_sub(self.wall_start.elapsed()) {
@@ -489,8 +477,8 @@ impl SitlWorld {
 
     /// Waits until every live drone whose companion has been heard answers this tick's
     /// position (in lockstep the daemon ends its answer to each one with a heartbeat, after
-    /// any setpoint or command). Returns whether every live drone is streaming setpoints.
-    fn wait_for_answers(&mut self, t: f64) -> Result<bool, SitlError> {
+    /// any setpoint or command).
+    fn wait_for_answers(&mut self, t: f64) -> Result<(), SitlError> {
         let start = Instant::now();
         let unanswered = |node: &AutopilotNode| {
             node.autopilot()
@@ -506,17 +494,12 @@ impl SitlWorld {
                     waiting |= unanswered(node);
                 }
             }
-            let all_streaming = self.nodes.iter().flatten().all(|node| {
-                node.autopilot()
-                    .last_setpoint_at()
-                    .is_some_and(|at| t - at <= 1.0)
-            });
             if !waiting {
-                return Ok(all_streaming);
+                return Ok(());
             }
             if start.elapsed() > self.config.lockstep_timeout {
                 self.lockstep_misses += 1;
-                return Ok(all_streaming);
+                return Ok(());
             }
             thread::sleep(Duration::from_micros(50));
         }

@@ -7,6 +7,8 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal, Poisson};
 use thiserror::Error;
 
+use crate::scenario::Scenario;
+
 /// Sensor model. Units: metres.
 #[derive(Debug, Clone, PartialEq)]
 pub struct SensorConfig {
@@ -26,6 +28,19 @@ pub enum SensorError {
     /// A parameter is out of range; the message says which.
     #[error("invalid sensor configuration: {0}")]
     InvalidConfig(&'static str),
+}
+
+impl SensorConfig {
+    /// The SITL's sensor for `scenario`: its sensing noise, 95 % detection, no false alarms,
+    /// over its floor.
+    pub fn for_scenario(scenario: &Scenario) -> SensorConfig {
+        SensorConfig {
+            position_std: scenario.noise.sensing_std,
+            p_detect: 0.95,
+            false_alarms_per_scan: 0.0,
+            area: [scenario.area.width, scenario.area.depth],
+        }
+    }
 }
 
 /// The sensor with its random stream.
