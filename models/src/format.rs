@@ -1,10 +1,10 @@
 //! The byte layout of a model file and its zero-copy decoder.
 //!
-//! # Layout (format version 1)
+//! # Layout (format version 2)
 //!
 //! All integers and floats are **little-endian, fixed width**; nothing is aligned, nothing is
 //! variable-length. The file is hand-laid-out rather than postcard-encoded on purpose: postcard
-//! writes integers as varints, so neither the header nor the int32 bias / multiplier arrays would
+//! writes integers as varints, so neither the header nor the bias / multiplier arrays would
 //! sit at offsets computable from the header, and [`decode`] could not hand out borrowed slices
 //! of them. With a fixed layout every array is a sub-slice of the input at a known offset.
 //!
@@ -25,45 +25,54 @@
 //! | 24 | `f32` | max speed, m/s: a normalised action of 1 means this speed |
 //! | 28 | `u32` | reserved, 0 |
 //! | 32 | `[f32; F]` | input quantization scale per feature |
-//! | 32 + 4F | `[i8; F]` | input quantization zero point per feature |
-//! | 32 + 5F | layers | `T` task input layers (`F -> H`, ReLU), `S` shared (`H -> H`, ReLU), `T` task output layers (`H -> 3`, none) |
+//! | 32 + 4F | `[i16; F]` | input quantization zero point per feature |
+//! | 32 + 6F | layers | `T` task input layers (`F -> H`, ReLU), `S` shared (`H -> H`, ReLU), `T` task output layers (`H -> 3`, none) |
 //! | len - 4 | `u32` | CRC-32 (ISO-HDLC, as zlib) of every byte before it |
 //!
-//! Each layer record with `I` inputs and `O` outputs:
+//! Each layer record with `I` inputs, `O` outputs and `B` bytes per weight:
 //!
 //! | offset | type | field |
 //! |---|---|---|
 //! | 0 | `u16` | `I` |
 //! | 2 | `u16` | `O` |
 //! | 4 | `u8` | activation: 0 none, 1 ReLU (fused into the output clamp) |
-//! | 5 | `u8` | reserved, 0 |
-//! | 6 | `i8` | output zero point |
-//! | 7 | `u8` | reserved, 0 |
+//! | 5 | `u8` | bytes per weight `B`: 1 (int8) or 2 (int16), see [`WeightWidth`] |
+//! | 6 | `i16` | output zero point |
 //! | 8 | `f32` | output scale |
-//! | 12 | `[i8; O*I]` | weights, row-major `[out][in]` |
-//! | 12 + OI | `[f32; O]` | per-output-channel weight scale |
-//! | 12 + 5O.. | `[i32; O]` | bias with the input zero point folded in |
+//! | 12 | `[i8; O*I]` or `[i16; O*I]` | weights, row-major `[out][in]` |
+//! | 12 + BOI | `[f32; O]` | per-output-channel weight scale |
+//! | 12 + BOI + 4O | `[i64; O]` | bias with the input zero point folded in |
 //! | | `[i32; O]` | requantization multiplier `M`, `0 <= M < 2^31` |
 //! | | `[u8; O]` | requantization right shift `s`, `1..=62` |
 //!
 //! # Arithmetic (what the numbers mean)
 //!
-//! Activations are affine int8: `real = scale * (q - zero_point)`. The model input is quantized
-//! per feature, `q_j = clamp(round_half_away(x_j / scale_j) + zp_j, -128, 127)`; the per-feature
-//! scale is folded into the first layer's float weights before they are quantized, so the first
-//! layer sees an input scale of 1. A layer computes, per output channel `o`,
+//! **Weights are int8** (symmetric, per output channel), except where a layer record says int16:
+//! the quantizer gives the two task input layers int16 weights, because the trained actor's first
+//! layer is where rounding costs most (int8 there alone moves the action by 6 % of max speed RMS,
+//! 12-bit weights by 0.3 %). **Activations are affine int16**: `real = scale * (q - zero_point)`.
+//! The model input is quantized per feature,
+//! `q_j = clamp(round_half_away(x_j / scale_j) + zp_j, -32768, 32767)`; the per-feature scale is
+//! folded into the first layer's float weights before they are quantized, so the first layer
+//! sees an input scale of 1. A layer computes, per output channel `o`,
 //!
 //! ```text
-//! acc_o = bias_o + sum_i w_oi * q_i                      (int32, exact)
-//! y_o   = clamp(zp_out + requantize(acc_o, M_o, s_o), lo, 127)
-//! requantize(a, M, s) = (a * M + 2^(s-1)) >> s           (int64, arithmetic shift)
+//! acc_o = bias_o + sum_i w_oi * q_i                      (exact: int32 for int8 weights,
+//!                                                         int64 for int16 weights)
+//! y_o   = clamp(zp_out + requantize(acc_o, M_o, s_o), lo, 32767)
+//! requantize(a, M, s) = (a * M + 2^(s-1)) >> s           (int64, or int128 for int64 acc)
 //! ```
 //!
-//! with `lo = zp_out` for ReLU layers and `-128` otherwise. The rounding is **single rounding,
+//! with `lo = zp_out` for ReLU layers and `-32768` otherwise. The rounding is **single rounding,
 //! half towards +infinity** (TFLite's `TFLITE_SINGLE_ROUNDING` form), see [`requantize`]. The
-//! decoder guarantees `|bias| <= BIAS_LIMIT` and widths `<= MAX_WIDTH`, so `acc` cannot overflow
-//! an `i32` and the product cannot overflow an `i64`. The output layer's int8 values are
-//! dequantized with its output scale and zero point and squashed with `tanh` into `[-1, 1]`.
+//! decoder guarantees `|bias| <=` [`BIAS_LIMIT_INT8`] for int8-weight layers
+//! ([`BIAS_LIMIT_INT16`] for int16) and widths `<= MAX_WIDTH`, so no accumulator or product can
+//! overflow. The task output layer's int16 values are dequantized with its output scale and zero
+//! point and squashed with `tanh` into `[-1, 1]`.
+//!
+//! Version 1 (int8 activations and weights throughout, int32 bias) is not read any more: its
+//! int8 activations and first-layer weights put the shipped actor 4.9 % of max speed (RMS) away
+//! from its float self.
 
 use core::fmt;
 
@@ -72,7 +81,7 @@ use crate::Task;
 /// First four bytes of every model file.
 pub const MAGIC: [u8; 4] = *b"SKYM";
 /// The format version this crate reads and writes.
-pub const FORMAT_VERSION: u16 = 1;
+pub const FORMAT_VERSION: u16 = 2;
 /// Length of the fixed header in bytes.
 pub const HEADER_LEN: usize = 32;
 /// Length of a layer record's fixed part in bytes.
@@ -89,9 +98,13 @@ pub const MAX_WIDTH: usize = 256;
 pub const MAX_SHARED_LAYERS: usize = 8;
 /// Largest number of layer records in a file.
 pub const MAX_LAYERS: usize = 2 * Task::COUNT + MAX_SHARED_LAYERS;
-/// Largest magnitude of a stored bias. With widths `<= MAX_WIDTH` an accumulator stays below
-/// `2^30 + 256 * 127 * 128 < 2^31`.
-pub const BIAS_LIMIT: i32 = 1 << 30;
+/// Largest magnitude of a stored bias in a layer with int8 weights. With widths `<= MAX_WIDTH`
+/// its int32 accumulator stays below `(2^30 - 1) + 256 * 128 * 32768 = 2^31 - 1`.
+pub const BIAS_LIMIT_INT8: i64 = (1 << 30) - 1;
+/// Largest magnitude of a stored bias in a layer with int16 weights. Its int64 accumulator stays
+/// below `2^40 + 256 * 2^30 < 2^41`, and times a multiplier `< 2^31` below `2^72`: the
+/// requantization of such a layer runs in int128.
+pub const BIAS_LIMIT_INT16: i64 = 1 << 40;
 /// Smallest and largest requantization right shift.
 pub const SHIFT_RANGE: core::ops::RangeInclusive<u8> = 1..=62;
 
@@ -103,18 +116,61 @@ pub const ACTIVATION_RELU: u8 = 1;
 /// The CRC used for the trailer: CRC-32/ISO-HDLC (the zlib / PNG CRC).
 pub const CRC32: crc::Crc<u32> = crc::Crc::<u32>::new(&crc::CRC_32_ISO_HDLC);
 
-/// Byte length of a layer record with `inputs` inputs and `outputs` outputs.
-pub const fn layer_record_len(inputs: usize, outputs: usize) -> usize {
-    LAYER_HEADER_LEN + outputs * inputs + 13 * outputs
+/// How a layer's weights are stored: the byte at offset 5 of its record.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum WeightWidth {
+    /// One byte per weight, `-128..=127` (the quantizer uses `±127`).
+    #[default]
+    Int8 = 1,
+    /// Two bytes per weight, little-endian `i16` (the quantizer uses `±32767`).
+    Int16 = 2,
 }
 
-/// Byte length of a whole model file with the given shape.
+impl WeightWidth {
+    /// Bytes per weight.
+    pub const fn bytes(self) -> usize {
+        self as usize
+    }
+    /// Largest weight magnitude the quantizer writes: `2^(bits-1) - 1`.
+    pub const fn max_level(self) -> i32 {
+        match self {
+            WeightWidth::Int8 => i8::MAX as i32,
+            WeightWidth::Int16 => i16::MAX as i32,
+        }
+    }
+    /// The width for a record's byte, if it names one.
+    pub const fn from_code(code: u8) -> Option<WeightWidth> {
+        match code {
+            1 => Some(WeightWidth::Int8),
+            2 => Some(WeightWidth::Int16),
+            _ => None,
+        }
+    }
+    /// Largest stored bias magnitude for this width ([`BIAS_LIMIT_INT8`], [`BIAS_LIMIT_INT16`]).
+    pub const fn bias_limit(self) -> i64 {
+        match self {
+            WeightWidth::Int8 => BIAS_LIMIT_INT8,
+            WeightWidth::Int16 => BIAS_LIMIT_INT16,
+        }
+    }
+}
+
+/// The weight widths the quantizer writes: int16 for the task input layers, int8 elsewhere.
+pub const INPUT_LAYER_WEIGHTS: WeightWidth = WeightWidth::Int16;
+
+/// Byte length of a layer record with `inputs` inputs, `outputs` outputs and `width` weights.
+pub const fn layer_record_len(inputs: usize, outputs: usize, width: WeightWidth) -> usize {
+    LAYER_HEADER_LEN + outputs * inputs * width.bytes() + 17 * outputs
+}
+
+/// Byte length of a whole model file with the given shape, as the quantizer writes it (task
+/// input layers [`INPUT_LAYER_WEIGHTS`], the others int8).
 pub const fn file_len(features: usize, hidden: usize, shared_layers: usize) -> usize {
     HEADER_LEN
-        + 5 * features
-        + Task::COUNT * layer_record_len(features, hidden)
-        + shared_layers * layer_record_len(hidden, hidden)
-        + Task::COUNT * layer_record_len(hidden, ACTIONS)
+        + 6 * features
+        + Task::COUNT * layer_record_len(features, hidden, INPUT_LAYER_WEIGHTS)
+        + shared_layers * layer_record_len(hidden, hidden, WeightWidth::Int8)
+        + Task::COUNT * layer_record_len(hidden, ACTIONS, WeightWidth::Int8)
         + CRC_LEN
 }
 
@@ -137,6 +193,23 @@ pub fn requantize(acc: i32, multiplier: i32, shift: u8) -> i32 {
     let product = (acc as i64).saturating_mul(multiplier as i64);
     let rounded = product.saturating_add(1i64 << (shift - 1)) >> shift;
     rounded.clamp(i32::MIN as i64, i32::MAX as i64) as i32
+}
+
+/// [`requantize`] for the int64 accumulator of a layer with int16 weights, in int128: the same
+/// single rounding, saturated to `i32`.
+///
+/// ```
+/// use skyherd_model::format::{requantize, requantize_wide};
+/// assert_eq!(requantize_wide(3, 1 << 30, 31), requantize(3, 1 << 30, 31));
+/// // 2^40 * 0.5 does not fit an i32: it saturates.
+/// assert_eq!(requantize_wide(1 << 40, 1 << 30, 31), i32::MAX);
+/// ```
+#[inline]
+pub fn requantize_wide(acc: i64, multiplier: i32, shift: u8) -> i32 {
+    let shift = shift.clamp(*SHIFT_RANGE.start(), *SHIFT_RANGE.end()) as u32;
+    let product = (acc as i128).saturating_mul(multiplier as i128);
+    let rounded = product.saturating_add(1i128 << (shift - 1)) >> shift;
+    rounded.clamp(i32::MIN as i128, i32::MAX as i128) as i32
 }
 
 /// Why a byte string is not a valid model file.
@@ -204,6 +277,13 @@ pub enum FormatError {
     },
     /// A layer's activation code is unknown or wrong for its position.
     Activation {
+        /// Layer index in file order.
+        layer: u8,
+        /// The code found.
+        code: u8,
+    },
+    /// A layer's bytes-per-weight code is neither 1 (int8) nor 2 (int16).
+    WeightWidth {
         /// Layer index in file order.
         layer: u8,
         /// The code found.
@@ -290,6 +370,10 @@ impl fmt::Display for FormatError {
             FormatError::Activation { layer, code } => {
                 write!(f, "layer {layer}: activation code {code} not valid here")
             }
+            FormatError::WeightWidth { layer, code } => write!(
+                f,
+                "layer {layer}: {code} bytes per weight (must be 1 for int8 or 2 for int16)"
+            ),
             FormatError::Requantization { layer, channel } => write!(
                 f,
                 "layer {layer}, channel {channel}: bias, multiplier or shift out of range"
@@ -339,11 +423,14 @@ pub struct LayerView<'a> {
     pub outputs: usize,
     /// Whether ReLU is fused into the output clamp.
     pub relu: bool,
-    /// Zero point of the int8 output.
-    pub output_zero_point: i8,
-    /// Scale of the int8 output.
+    /// How the weights are stored.
+    pub weight_width: WeightWidth,
+    /// Zero point of the int16 output.
+    pub output_zero_point: i16,
+    /// Scale of the int16 output.
     pub output_scale: f32,
-    /// `outputs * inputs` int8 weights, row-major `[out][in]`, as raw bytes.
+    /// `outputs * inputs` weights (int8, or little-endian int16), row-major `[out][in]`, as raw
+    /// bytes.
     pub weights: &'a [u8],
     weight_scales: &'a [u8],
     bias: &'a [u8],
@@ -367,8 +454,8 @@ impl<'a> LayerView<'a> {
     }
     /// Bias of channel `o`, input zero point folded in (0 when out of range).
     #[inline]
-    pub fn bias(&self, o: usize) -> i32 {
-        i32::from_le_bytes(word(self.bias, o))
+    pub fn bias(&self, o: usize) -> i64 {
+        i64::from_le_bytes(word(self.bias, o))
     }
     /// Requantization multiplier of channel `o` (0 when out of range).
     #[inline]
@@ -380,21 +467,31 @@ impl<'a> LayerView<'a> {
     pub fn shift(&self, o: usize) -> u8 {
         self.shift.get(o).copied().unwrap_or(1)
     }
-    /// Weight row of channel `o` as raw bytes (each an `i8`); empty when out of range.
+    /// Weight row of channel `o` as raw bytes (each an `i8`, or a little-endian `i16` pair);
+    /// empty when out of range.
     #[inline]
     pub fn row(&self, o: usize) -> &'a [u8] {
-        let start = o.saturating_mul(self.inputs);
+        let len = self.inputs.saturating_mul(self.weight_width.bytes());
+        let start = o.saturating_mul(len);
         self.weights
-            .get(start..start.saturating_add(self.inputs))
+            .get(start..start.saturating_add(len))
             .unwrap_or(&[])
     }
-    /// Lowest int8 output value: the zero point for ReLU layers, else -128.
+    /// Weight `(o, i)` as an integer (0 when out of range).
+    pub fn weight(&self, o: usize, i: usize) -> i32 {
+        let row = self.row(o);
+        match self.weight_width {
+            WeightWidth::Int8 => row.get(i).map_or(0, |&b| b as i8 as i32),
+            WeightWidth::Int16 => i16::from_le_bytes(word(row, i)) as i32,
+        }
+    }
+    /// Lowest int16 output value: the zero point for ReLU layers, else -32768.
     #[inline]
-    pub fn output_floor(&self) -> i8 {
+    pub fn output_floor(&self) -> i16 {
         if self.relu {
             self.output_zero_point
         } else {
-            i8::MIN
+            i16::MIN
         }
     }
 }
@@ -407,8 +504,8 @@ impl<'a> ModelView<'a> {
     }
     /// Input quantization zero point of feature `j` (0 when out of range).
     #[inline]
-    pub fn input_zero_point(&self, j: usize) -> i8 {
-        self.input_zero_points.get(j).map_or(0, |&b| b as i8)
+    pub fn input_zero_point(&self, j: usize) -> i16 {
+        i16::from_le_bytes(word(self.input_zero_points, j))
     }
     /// Every layer in file order: task inputs, shared, task outputs.
     pub fn layers(&self) -> &[LayerView<'a>] {
@@ -437,9 +534,17 @@ impl<'a> ModelView<'a> {
     pub fn file_len(&self) -> usize {
         self.len
     }
-    /// Number of int8 weights (one byte each in flash).
+    /// Number of weights (int8 and int16 together).
     pub fn weight_count(&self) -> usize {
-        self.layers().iter().map(|l| l.weights.len()).sum()
+        self.layers().iter().map(|l| l.inputs * l.outputs).sum()
+    }
+    /// Number of int16 weights (two bytes each in flash; the rest are int8).
+    pub fn wide_weight_count(&self) -> usize {
+        self.layers()
+            .iter()
+            .filter(|l| l.weight_width == WeightWidth::Int16)
+            .map(|l| l.inputs * l.outputs)
+            .sum()
     }
     /// Fails with [`FormatError::EncoderMismatch`] unless the model was made for this encoder.
     pub fn check_encoder(&self, version: u16, features: usize) -> Result<(), FormatError> {
@@ -597,7 +702,7 @@ pub fn decode(bytes: &[u8]) -> Result<ModelView<'_>, FormatError> {
             });
         }
     }
-    let input_zero_points = r.take(features)?;
+    let input_zero_points = r.take(2 * features)?;
 
     let mut layers = [LayerView::default(); MAX_LAYERS];
     let layer_count = 2 * Task::COUNT + shared_layers;
@@ -653,9 +758,12 @@ fn read_layer<'a>(
     if code != expected_code {
         return Err(FormatError::Activation { layer, code });
     }
-    r.zero::<1>()?;
-    let output_zero_point = r.u8()? as i8;
-    r.zero::<1>()?;
+    let width_code = r.u8()?;
+    let weight_width = WeightWidth::from_code(width_code).ok_or(FormatError::WeightWidth {
+        layer,
+        code: width_code,
+    })?;
+    let output_zero_point = r.u16()? as i16;
     let output_scale = r.f32()?;
     if !positive_finite(output_scale) {
         return Err(FormatError::Scale {
@@ -667,11 +775,12 @@ fn read_layer<'a>(
         inputs,
         outputs,
         relu,
+        weight_width,
         output_zero_point,
         output_scale,
-        weights: r.take(inputs * outputs)?,
+        weights: r.take(inputs * outputs * weight_width.bytes())?,
         weight_scales: r.take(4 * outputs)?,
-        bias: r.take(4 * outputs)?,
+        bias: r.take(8 * outputs)?,
         multiplier: r.take(4 * outputs)?,
         shift: r.take(outputs)?,
     };
@@ -682,7 +791,8 @@ fn read_layer<'a>(
                 channel: o as u16,
             });
         }
-        let bias_ok = (-BIAS_LIMIT..=BIAS_LIMIT).contains(&view.bias(o));
+        let limit = weight_width.bias_limit();
+        let bias_ok = (-limit..=limit).contains(&view.bias(o));
         if !bias_ok || view.multiplier(o) < 0 || !SHIFT_RANGE.contains(&view.shift(o)) {
             return Err(FormatError::Requantization {
                 layer,

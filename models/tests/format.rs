@@ -63,6 +63,13 @@ fn round_trip_exposes_every_field() {
     assert_eq!(model.task_input(Task::Collecting).inputs, 5);
     assert_eq!(model.task_output(Task::Collecting).outputs, 3);
     assert_eq!(model.weight_count(), 2 * 35 + 2 * 49 + 2 * 21);
+    // The task input layers carry int16 weights, the others int8.
+    assert_eq!(model.wide_weight_count(), 2 * 35);
+    assert_eq!(
+        model.task_input(Task::Driving).weight_width,
+        format::WeightWidth::Int16
+    );
+    assert_eq!(model.shared()[0].weight_width, format::WeightWidth::Int8);
     assert!(model.task_input(Task::Driving).relu && !model.task_output(Task::Driving).relu);
     assert_eq!(model.check_encoder(9, 5), Ok(()));
     assert_eq!(
@@ -79,9 +86,10 @@ fn header_errors() {
     let bytes = model_bytes();
     assert!(matches!(decode(&[]), Err(FormatError::Truncated { .. })));
     assert_eq!(decode(b"SKYX\x01\x00").err(), Some(FormatError::BadMagic));
+    // Format 1 (int8 activations) is not read any more.
     let mut b = bytes.clone();
-    b[4] = 2;
-    assert_eq!(decode(&b).err(), Some(FormatError::UnsupportedVersion(2)));
+    b[4] = 1;
+    assert_eq!(decode(&b).err(), Some(FormatError::UnsupportedVersion(1)));
     let mut b = bytes.clone();
     b[6] = 31;
     assert_eq!(decode(&b).err(), Some(FormatError::BadHeaderLength(31)));
@@ -135,8 +143,8 @@ fn structural_errors() {
             channel: 1
         })
     );
-    // First layer record starts after the 5 input scales and zero points.
-    let layer0 = HEADER_LEN + 5 * 5;
+    // First layer record starts after the 5 input scales (f32) and zero points (i16).
+    let layer0 = HEADER_LEN + 6 * 5;
     assert_eq!(
         edited(layer0, &6u16.to_le_bytes()),
         Err(FormatError::LayerShape {
@@ -150,9 +158,11 @@ fn structural_errors() {
         Err(FormatError::Activation { layer: 0, code: 0 })
     );
     assert_eq!(
-        edited(layer0 + 5, &[1]),
-        Err(FormatError::ReservedNotZero(layer0 + 5))
+        edited(layer0 + 5, &[3]),
+        Err(FormatError::WeightWidth { layer: 0, code: 3 })
     );
+    // Int8 instead of int16: the record then ends early and the rest does not parse.
+    assert!(edited(layer0 + 5, &[1]).is_err());
     assert_eq!(
         edited(layer0 + 8, &f32::INFINITY.to_le_bytes()),
         Err(FormatError::Scale {
@@ -160,7 +170,8 @@ fn structural_errors() {
             channel: 0
         })
     );
-    let scales = layer0 + LAYER_HEADER_LEN + 35;
+    // 35 int16 weights.
+    let scales = layer0 + LAYER_HEADER_LEN + 2 * 35;
     assert_eq!(
         edited(scales + 4, &(-0.5f32).to_le_bytes()),
         Err(FormatError::Scale {
@@ -169,14 +180,16 @@ fn structural_errors() {
         })
     );
     let bias = scales + 4 * 7;
+    // An int16-weight layer's bias may reach 2^40, not beyond.
     assert_eq!(
-        edited(bias, &i32::MAX.to_le_bytes()),
+        edited(bias, &((1i64 << 40) + 1).to_le_bytes()),
         Err(FormatError::Requantization {
             layer: 0,
             channel: 0
         })
     );
-    let multiplier = bias + 4 * 7;
+    assert!(edited(bias, &(1i64 << 40).to_le_bytes()).is_ok());
+    let multiplier = bias + 8 * 7;
     assert_eq!(
         edited(multiplier + 8, &(-5i32).to_le_bytes()),
         Err(FormatError::Requantization {
@@ -199,6 +212,17 @@ fn structural_errors() {
             channel: 6
         })
     );
+    // The shared layers have int8 weights: their bias must stay below 2^30.
+    let layer2 = shift + 7 + format::layer_record_len(5, 7, format::INPUT_LAYER_WEIGHTS);
+    let bias2 = layer2 + LAYER_HEADER_LEN + 49 + 4 * 7;
+    assert_eq!(
+        edited(bias2, &(1i64 << 30).to_le_bytes()),
+        Err(FormatError::Requantization {
+            layer: 2,
+            channel: 0
+        })
+    );
+    assert!(edited(bias2, &((1i64 << 30) - 1).to_le_bytes()).is_ok());
 }
 
 #[test]

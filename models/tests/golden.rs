@@ -49,10 +49,10 @@ fn seeded_model_bytes_are_pinned() {
         stored == bytes,
         "model encoder or quantizer output drifted from {GOLDEN_FILE}; if intended, bless it"
     );
-    // The header layout itself, byte by byte (format version 1).
+    // The header layout itself, byte by byte (format version 2).
     #[rustfmt::skip]
     let header: [u8; 32] = [
-        b'S', b'K', b'Y', b'M', 1, 0, 32, 0,   // magic, format version, header length
+        b'S', b'K', b'Y', b'M', 2, 0, 32, 0,   // magic, format version, header length
         0, 0, 0, 0,                            // file length (checked below)
         3, 0, 46, 0, 32, 0,                    // encoder v3, 46 features, hidden 32
         2, 2, 3, 0, 0, 0,                      // 2 tasks, 2 shared layers, 3 actions, reserved

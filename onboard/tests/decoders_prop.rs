@@ -4,7 +4,7 @@
 use proptest::prelude::*;
 use skyherd_model::format::CRC32;
 use skyherd_model::{ActorShape, FloatActor, ModelMeta, SplitMix64, Task, decode, quantize};
-use skyherd_onboard::actor::infer_int8_any;
+use skyherd_onboard::actor::infer_quantized_any;
 use skyherd_onboard::wire::{
     MAX_MESSAGE, Reassembler, TUNNEL_PAYLOAD, Uplink, WorldSnapshot, chunks, decode_uplink,
     encode_uplink, parse_chunk,
@@ -97,7 +97,7 @@ proptest! {
         match decode(&bytes) {
             // Whatever decodes must run without panicking.
             Ok(model) => {
-                let _ = infer_int8_any(&model, Task::Collecting, &features);
+                let _ = infer_quantized_any(&model, Task::Collecting, &features);
             }
             Err(e) => prop_assert!(!e.to_string().is_empty()),
         }

@@ -144,7 +144,8 @@ impl MultiTaskMlp {
     }
 
     /// [`forward`](Self::forward) with every hidden layer's output (after ReLU) rounded to a
-    /// multiple of `hidden_steps[i]` and clipped at 255 steps, as the int8 actor stores it
+    /// multiple of `hidden_steps[i]` and clipped at 65535 steps, as the quantized actor stores it
+    /// (int16 from the zero point -32768)
     /// (quantization-aware training; the backward pass treats the rounding as identity). An
     /// empty `hidden_steps` rounds nothing.
     pub fn forward_rounding(
@@ -179,7 +180,7 @@ impl MultiTaskMlp {
             };
             activation.apply(y);
             if let Some(&step) = hidden_steps.get(i).filter(|&&s| i + 1 < depth && s > 0.0) {
-                let top = 255.0 * step;
+                let top = 65535.0 * step;
                 y.iter_mut()
                     .for_each(|v| *v = ((*v / step).round() * step).min(top));
             }

@@ -1,11 +1,13 @@
 //! Quantization-aware fine-tuning before export: the float actor is distilled into a copy of
-//! itself that runs with the int8 actor's rounding in the loop (input features, weights and
-//! hidden activations rounded to int8 grids, straight-through gradients), so that after
-//! quantization the actor behaves like the float teacher rather than each weight being close.
+//! itself that runs with the quantized actor's rounding in the loop (input features, weights
+//! and hidden activations rounded to the model's grids, straight-through gradients), so that
+//! after quantization the actor behaves like the float teacher rather than each weight being
+//! close.
 //!
 //! The grids are the quantizer's (`skyherd_model::quantize_model` run on the teacher):
-//! per-feature affine inputs folded into the first layer, symmetric per-row weights, ReLU
-//! activations from 0 with one scale per tensor.
+//! per-feature affine int16 inputs folded into the first layer, symmetric per-row weights
+//! (int16 in the task input layers, int8 elsewhere), int16 ReLU activations from 0 with one
+//! scale per tensor.
 
 use rand::Rng;
 use rand::SeedableRng;
@@ -13,6 +15,7 @@ use rand_chacha::ChaCha8Rng;
 use skyherd_model::Task;
 use skyherd_onboard::obs::FEATURES;
 
+use skyherd_model::format::WeightWidth;
 use skyherd_model::{ModelMeta, quantize_model};
 use skyherd_onboard::obs::ENCODER_VERSION;
 
@@ -45,12 +48,13 @@ impl Default for QatConfig {
 }
 
 fn round_input(x: f32, (scale, zero): (f32, f32)) -> f32 {
-    scale * (((x / scale).round() + zero).clamp(-128.0, 127.0) - zero)
+    scale * (((x / scale).round() + zero).clamp(-32768.0, 32767.0) - zero)
 }
 
-/// `weights` rounded per row to `max |w| / 127` steps; `column_scales` (the first layer's input
-/// scales) are folded in before rounding, as the quantizer does, and taken out again.
-fn round_weights(layer: &mut Dense, column_scales: Option<&[f32]>) {
+/// `weights` rounded per row to `max |w| / L` steps (`L` the width's largest level);
+/// `column_scales` (the first layer's input scales) are folded in before rounding, as the
+/// quantizer does, and taken out again.
+fn round_weights(layer: &mut Dense, column_scales: Option<&[f32]>, width: WeightWidth) {
     let inputs = layer.inputs;
     for row in layer.weights.chunks_mut(inputs) {
         let folded = |j: usize, w: f32| column_scales.map_or(w, |s| w * s[j]);
@@ -61,7 +65,7 @@ fn round_weights(layer: &mut Dense, column_scales: Option<&[f32]>) {
         if max == 0.0 {
             continue;
         }
-        let step = max / 127.0;
+        let step = max / width.max_level() as f32;
         for (j, w) in row.iter_mut().enumerate() {
             let q = (folded(j, *w) / step).round() * step;
             *w = column_scales.map_or(q, |s| q / s[j]);
@@ -69,16 +73,16 @@ fn round_weights(layer: &mut Dense, column_scales: Option<&[f32]>) {
     }
 }
 
-/// The student with its weights on the int8 grids.
-fn rounded(student: &MultiTaskMlp, input_scales: &[f32]) -> MultiTaskMlp {
+/// The student with its weights on the model's grids (`widths` in file order, as the plan's).
+fn rounded(student: &MultiTaskMlp, input_scales: &[f32], widths: &[WeightWidth]) -> MultiTaskMlp {
     let mut q = student.clone();
-    q.task_inputs
-        .iter_mut()
-        .for_each(|l| round_weights(l, Some(input_scales)));
-    q.shared
-        .iter_mut()
-        .chain(q.task_outputs.iter_mut())
-        .for_each(|l| round_weights(l, None));
+    let mut widths = widths.iter().copied();
+    for l in q.task_inputs.iter_mut() {
+        round_weights(l, Some(input_scales), widths.next().unwrap_or_default());
+    }
+    for l in q.shared.iter_mut().chain(q.task_outputs.iter_mut()) {
+        round_weights(l, None, widths.next().unwrap_or_default());
+    }
     q
 }
 
@@ -103,6 +107,7 @@ pub fn finetune(
         return teacher.clone();
     };
     let input_scales = plan.input_scales.clone();
+    let widths: Vec<WeightWidth> = plan.layers.iter().map(|l| l.weight_width).collect();
     let grids: Vec<(f32, f32)> = plan
         .input_scales
         .iter()
@@ -137,7 +142,7 @@ pub fn finetune(
     let outputs = teacher.outputs();
     let (mut x, mut target) = (Vec::new(), Vec::new());
     for step in 0..config.steps {
-        let q = rounded(&student, &input_scales);
+        let q = rounded(&student, &input_scales, &widths);
         let mut grads = student.zeros_like();
         for (t, (inputs, actions)) in by_task.iter().enumerate() {
             let n = actions.len() / outputs;
@@ -168,7 +173,7 @@ pub fn finetune(
         adam.update(student.layers_mut(), grads.layers());
     }
     // On the grid: the export's rounding then keeps every weight where training left it.
-    rounded(&student, &input_scales)
+    rounded(&student, &input_scales, &widths)
 }
 
 #[cfg(test)]

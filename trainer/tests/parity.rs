@@ -1,10 +1,8 @@
-//! The shipped model as it flies (int8, run by `skyherd_onboard::actor::Actor`) against the float
-//! actor it was exported from (`trainer/shipped/mtddpg-v1.actor.safetensors`):
+//! The shipped model as it flies (quantized, run by `skyherd_onboard::actor::Actor`) against the
+//! float actor it was exported from (`trainer/shipped/mtddpg-v1.actor.safetensors`):
 //! * on a small held-out evaluation (test-time noise), the success rates are within 1 point;
-//! * on observations recorded while the float actor herds, the RMS action error stays at the
-//!   level measured at export. The aim is 1 % of the speed limit (DESIGN §4); the shipped model
-//!   does **not** meet it (about 3.8 %, see `models/MODEL.md`), so this test guards the measured
-//!   level against regressions in export, quantizer and onboard inference instead.
+//! * on observations recorded while the float actor herds, the RMS action error is at most 1 %
+//!   of the speed limit (the aim of DESIGN §4 and the trainer issue).
 
 use std::path::Path;
 
@@ -35,33 +33,36 @@ fn scenarios() -> Vec<EvalScenario> {
         .collect()
 }
 
-/// RMS action error measured on the shipped model, in units of the speed limit, plus a margin:
-/// 0.038 on the export's held-out observations, 0.051 on this test's recording (N = 16, M = 4;
-/// 0.093 on the export's with plain rounding and no fine-tuning).
-const MEASURED_RMS_BOUND: f64 = 0.06;
+/// The aim: RMS action error at most 1 % of the speed limit. Measured on the shipped model
+/// (format 2): 0.0075 on the export's held-out observations, 0.0094 on this test's
+/// recording (N = 16, M = 4). Format 1 (int8 activations and first layer) measured 0.049 and
+/// 0.051.
+const RMS_AIM: f64 = 0.01;
 
 #[test]
-fn int8_action_error_stays_at_the_measured_level() {
+fn quantized_action_error_is_within_one_percent_of_max_speed() {
     let (actor, bytes) = shipped();
     let obs = record_observations(&actor, &scenarios(), 2, 4_000_000_000, 400, 2)
         .expect("recording rollouts");
     assert!(obs.len() > 1000, "{} observations", obs.len());
     let p = parity(&actor, &bytes, &obs).expect("parity");
-    assert!(p.rms_component <= MEASURED_RMS_BOUND, "{p:?}");
+    eprintln!("{p:?}");
+    assert!(p.rms_component <= RMS_AIM, "{p:?}");
 }
 
 #[test]
-fn int8_success_rate_matches_the_float_actor() {
+fn quantized_success_rate_matches_the_float_actor() {
     let (actor, bytes) = shipped();
     let onboard = Actor::from_bytes(&bytes).expect("model loads");
     let seeds = 4_100_000_000;
     let float = evaluate_flat(&scenarios(), 10, seeds, || ActorPolicy::new(&actor)).expect("eval");
-    let int8 = evaluate_flat(&scenarios(), 10, seeds, || ActorPolicy::new(onboard)).expect("eval");
-    for (f, q) in float.iter().zip(&int8) {
+    let quantized =
+        evaluate_flat(&scenarios(), 10, seeds, || ActorPolicy::new(onboard)).expect("eval");
+    for (f, q) in float.iter().zip(&quantized) {
         let gap = 100.0 * (f.success_rate - q.success_rate).abs();
         assert!(
             gap <= 1.0,
-            "{}: float {:.0}% vs int8 {:.0}%",
+            "{}: float {:.0}% vs quantized {:.0}%",
             f.scenario.label(),
             100.0 * f.success_rate,
             100.0 * q.success_rate

@@ -22,7 +22,11 @@ fn describe(path: &str, model: &ModelView<'_>) {
         "  encoder: v{}, {} features; hidden {} x {} shared layers; max speed {} m/s",
         model.encoder_version, model.features, model.hidden, model.shared_layers, model.max_speed
     );
-    println!("  int8 weights: {} bytes", model.weight_count());
+    println!(
+        "  weights: {} ({} int16 in the task input layers, the rest int8)",
+        model.weight_count(),
+        model.wide_weight_count()
+    );
     for (index, layer) in model.layers().iter().enumerate() {
         let role = if index < Task::COUNT {
             format!(
@@ -36,10 +40,14 @@ fn describe(path: &str, model: &ModelView<'_>) {
             format!("output[{:?}]", Task::from_index(t).unwrap_or(Task::Driving))
         };
         println!(
-            "  layer {index:2} {role:<20} {:4} -> {:4} {:<5} out scale {:.6} zp {}",
+            "  layer {index:2} {role:<20} {:4} -> {:4} {:<5} {:<5} out scale {:.6} zp {}",
             layer.inputs,
             layer.outputs,
             if layer.relu { "relu" } else { "" },
+            match layer.weight_width {
+                skyherd_model::format::WeightWidth::Int8 => "int8",
+                skyherd_model::format::WeightWidth::Int16 => "int16",
+            },
             layer.output_scale,
             layer.output_zero_point
         );

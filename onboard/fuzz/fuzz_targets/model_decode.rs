@@ -4,12 +4,12 @@
 
 use libfuzzer_sys::fuzz_target;
 use skyherd_model::{Task, decode};
-use skyherd_onboard::actor::infer_int8_any;
+use skyherd_onboard::actor::infer_quantized_any;
 
 fuzz_target!(|data: &[u8]| {
     if let Ok(model) = decode(data) {
         for task in Task::ALL {
-            let _ = infer_int8_any(&model, task, &[0.5; 64]);
+            let _ = infer_quantized_any(&model, task, &[0.5; 64]);
         }
     }
 });
