@@ -1,8 +1,9 @@
-//! The skyherd model file format: an int8-quantized multi-task (MTDDPG) actor.
+//! The skyherd model file format: a quantized multi-task (MTDDPG) actor.
 //!
 //! The actor is the paper's Fig. 2 network: per task an input `Dense(F -> H)` + ReLU, `S` shared
 //! `Dense(H -> H)` + ReLU, per task an output `Dense(H -> 3)`, then `tanh`. A model file holds it
-//! quantized to int8 (layout and arithmetic in [`mod@format`]); [`decode`] validates a file and
+//! quantized: int8 weights, int16 in the task input layers, int16 activations (layout and
+//! arithmetic in [`mod@format`]); [`decode`] validates a file and
 //! returns a zero-copy [`ModelView`]. Inference lives in `skyherd_onboard::actor`.
 //!
 //! `#![no_std]` without alloc. Features (additive):

@@ -3,7 +3,7 @@
 //! Every herder encodes its own observation with the onboard encoder (through
 //! [`EncoderBuffers`], the one copy), asks the actor for a normalised local-frame action and turns
 //! it into a simulator-frame velocity with `LocalFrame::action_to_world`. [`ModelPolicy`] loads an
-//! int8 model file and runs it through `skyherd_onboard::actor::Actor`, the code that flies, so
+//! quantized model file and runs it through `skyherd_onboard::actor::Actor`, the code that flies, so
 //! `skyherd-sim eval --methods model:models/mtddpg-v1.skym` evaluates the shipped model as it
 //! flies beside the baselines.
 //!
@@ -160,7 +160,7 @@ impl std::error::Error for ModelPolicyError {
     }
 }
 
-/// An int8 model file as a [`PolicyFactory`]: every policy runs the onboard `Actor`.
+/// An quantized model file as a [`PolicyFactory`]: every policy runs the onboard `Actor`.
 #[derive(Clone, Debug)]
 pub struct ModelPolicy {
     name: String,

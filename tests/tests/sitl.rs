@@ -1,6 +1,6 @@
 //! End-to-end software-in-the-loop missions: `skyherd-sitl` (simulator + mock autopilots +
 //! tracking sensor) with `skyherd-ground` and one `skyherd-onboard` per drone as separate
-//! processes, real MAVLink 2 bytes over loopback UDP, the shipped int8 model.
+//! processes, real MAVLink 2 bytes over loopback UDP, the shipped quantized model.
 //!
 //! The binaries are the workspace's own, from the same target folder as this test (`cargo test
 //! --workspace` builds them).

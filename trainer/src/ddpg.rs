@@ -26,7 +26,7 @@ pub const ACTION_DIM: usize = 3;
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct NetworkConfig {
-    /// Units per hidden layer (the onboard int8 actor must fit 64 KiB of weights).
+    /// Units per hidden layer (the onboard quantized actor must fit 64 KiB of weights).
     pub hidden: usize,
     /// Shared hidden layers between the per-task input and output layers.
     pub shared_layers: usize,

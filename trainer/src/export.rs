@@ -1,6 +1,6 @@
-//! Export: the float actor -> `skyherd_model::FloatActor` -> int8 model file through the model
+//! Export: the float actor -> `skyherd_model::FloatActor` -> quantized model file through the model
 //! crate's quantizer, calibrated on observations recorded while the float actor flies; and the
-//! parity check of the exported int8 actor (run by `skyherd_onboard::actor::Actor`, as on the
+//! parity check of the exported quantized actor (run by `skyherd_onboard::actor::Actor`, as on the
 //! drone) against the float actor.
 
 use skyherd_model::{Dense as ModelDense, FloatActor, ModelMeta, QuantizeError, Task, quantize};
@@ -111,7 +111,7 @@ pub fn export(
     Ok(bytes)
 }
 
-/// How far the int8 actor is from the float actor on a set of observations.
+/// How far the quantized actor is from the float actor on a set of observations.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Parity {
     /// Observations compared.
@@ -124,7 +124,7 @@ pub struct Parity {
     pub max_component: f64,
 }
 
-/// Compares the float actor and the int8 model `bytes` on `observations`.
+/// Compares the float actor and the quantized model `bytes` on `observations`.
 pub fn parity(
     actor: &MultiTaskMlp,
     bytes: &[u8],

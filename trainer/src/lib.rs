@@ -1,5 +1,5 @@
 //! skyherd-trainer: MTDDPG (the paper's multi-task DDPG, Section III-B) on the skyherd
-//! simulator, and export of the trained actor as an int8 model file.
+//! simulator, and export of the trained actor as a quantized model file.
 //!
 //! Read top to bottom, like cleanrl's `ddpg_continuous_action.py`:
 //! * [`nn`]: f32 dense layers on `matrixmultiply`, ReLU/tanh, backprop, Adam.
@@ -14,7 +14,7 @@
 //!   M, held-out evaluation keeping the best checkpoint; then [`evolve`]: evolution strategies
 //!   on each task's own layers, scored by completion time. [`config`] documents every knob.
 //! * [`checkpoint`]: safetensors checkpoints for `--resume`; [`export`]: the quantizer of
-//!   `skyherd-model` and the int8 parity check; [`eval`], [`report`]: metrics, CSV, PNG.
+//!   `skyherd-model` and the quantized-vs-float parity check; [`eval`], [`report`]: metrics, CSV, PNG.
 //!
 //! ```
 //! use rand::SeedableRng;

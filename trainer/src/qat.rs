@@ -87,7 +87,7 @@ fn rounded(student: &MultiTaskMlp, input_scales: &[f32], widths: &[WeightWidth])
 }
 
 /// Distils `teacher` into a quantization-aware copy on `observations` (the export's calibration
-/// set); returns the student, whose int8 export follows the teacher more closely.
+/// set); returns the student, whose quantized export follows the teacher more closely.
 pub fn finetune(
     teacher: &MultiTaskMlp,
     observations: &[(Task, [f32; FEATURES])],
@@ -183,7 +183,7 @@ mod tests {
     use crate::nn::Activation;
 
     #[test]
-    fn finetuning_brings_the_int8_export_closer_to_the_teacher() {
+    fn finetuning_brings_the_quantized_export_closer_to_the_teacher() {
         let mut rng = ChaCha8Rng::seed_from_u64(4);
         let mut teacher = MultiTaskMlp::new(2, FEATURES, 32, 1, 3, Activation::Tanh, &mut rng);
         // A steep output layer, like a trained actor's, so that rounding matters.

@@ -105,7 +105,7 @@ fn tiny_training_runs_resumes_and_exports() {
     let resumed = checkpoint::load(&dir.join("last.safetensors")).expect("checkpoint");
     assert!(resumed.agent.updates > updates_before);
 
-    // Export the best actor and compare the int8 actor with it on recorded observations.
+    // Export the best actor and compare the quantized actor with it on recorded observations.
     let best = checkpoint::load(&dir.join("best.safetensors")).expect("best checkpoint");
     let scenarios = [EvalScenario {
         task: Task::Driving,

@@ -156,7 +156,7 @@ impl CoreConfig {
 
 /// The learned actor as the core sees it: features in, normalised action out.
 ///
-/// The daemon flies [`Actor`] (int8, from a model file); tests may use anything.
+/// The daemon flies [`Actor`] (quantized, from a model file); tests may use anything.
 pub trait Policy {
     /// Normalised action, each component in [-1, 1], in the encoder's
     /// [`LocalFrame`](crate::obs::LocalFrame).

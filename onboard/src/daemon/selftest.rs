@@ -2,8 +2,8 @@
 //!
 //! On a built-in deterministic scene (2 herders, 16 targets, seeded) it
 //! 1. builds a small model in memory with the model crate's quantizer from seeded, untrained
-//!    weights (or reads the model file given), and decodes it into the int8 [`Actor`];
-//! 2. encodes the scene and runs the int8 actor (and, for the built-in model, the f32 reference
+//!    weights (or reads the model file given), and decodes it into the quantized [`Actor`];
+//! 2. encodes the scene and runs the quantized actor (and, for the built-in model, the f32 reference
 //!    it was quantized from, reporting the difference);
 //! 3. checks the safety rules on four situations (stale, NaN, over speed, outside the fence);
 //! 4. flies a whole mission through [`DaemonCore`] against a scripted autopilot, every uplink
@@ -66,9 +66,9 @@ pub struct SelfTestReport {
     pub hidden: usize,
     /// Shared layers.
     pub shared_layers: usize,
-    /// The int8 actor's world velocity for herder 0 on the scene, m/s, simulator frame.
+    /// The quantized actor's world velocity for herder 0 on the scene, m/s, simulator frame.
     pub scene_velocity: [f32; 3],
-    /// Largest difference between the int8 and the f32 actions on the scene (built-in model
+    /// Largest difference between the quantized and the f32 actions on the scene (built-in model
     /// only), in units of the normalised action.
     pub int8_error: Option<f32>,
     /// Uplink chunks the mission's messages took.
@@ -84,7 +84,7 @@ impl fmt::Display for SelfTestReport {
         let v = self.scene_velocity;
         write!(
             f,
-            "self-test ok: model {} ({} B, {}x{}x{}), int8 v = ({:.2}, {:.2}, {:.2}) m/s",
+            "self-test ok: model {} ({} B, {}x{}x{}), quantized v = ({:.2}, {:.2}, {:.2}) m/s",
             self.model_source,
             self.model_bytes,
             FEATURES,
@@ -95,7 +95,7 @@ impl fmt::Display for SelfTestReport {
             v[2],
         )?;
         if let Some(e) = self.int8_error {
-            write!(f, " (int8 vs f32 {e:.3})")?;
+            write!(f, " (quantized vs f32 {e:.3})")?;
         }
         write!(
             f,
@@ -229,7 +229,7 @@ pub fn run(model_file: Option<(&str, &[u8])>) -> Result<SelfTestReport, SelfTest
     {
         return Err(fail(
             "infer",
-            format!("int8 action differs from f32 by {e}"),
+            format!("quantized action differs from f32 by {e}"),
         ));
     }
 

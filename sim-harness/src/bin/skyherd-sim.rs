@@ -43,7 +43,7 @@ enum Command {
         /// A preset (paper-drive, paper-collect, indoor) or a scenario TOML file.
         #[arg(long, default_value = "paper-drive")]
         scenario: String,
-        /// Policy: strombom, ctrl, lama, farthest, or `model:PATH` (an int8 model file).
+        /// Policy: strombom, ctrl, lama, farthest, or `model:PATH` (a quantized model file).
         #[arg(long, default_value = "strombom")]
         policy: String,
         /// Episode seed (default: the scenario's).
@@ -153,7 +153,7 @@ enum Command {
     },
 }
 
-/// The policies the command line knows: a baseline by name, or `model:PATH`, an int8 model file
+/// The policies the command line knows: a baseline by name, or `model:PATH`, a quantized model file
 /// run through the onboard actor as it flies.
 fn policy_factory(name: &str) -> Result<Arc<dyn PolicyFactory>> {
     if let Some(path) = name.strip_prefix("model:") {

@@ -1,4 +1,4 @@
-//! `skyherd-trainer`: train the MTDDPG actor, export it as an int8 model file, evaluate it.
+//! `skyherd-trainer`: train the MTDDPG actor, export it as a quantized model file, evaluate it.
 //!
 //! ```text
 //! skyherd-trainer train  --config trainer/configs/mtddpg-v1.toml [--resume]
@@ -55,7 +55,7 @@ enum Command {
         #[arg(long)]
         checkpoint: Option<PathBuf>,
     },
-    /// Quantize a checkpoint's actor into an int8 model file and check it against the float
+    /// Quantize a checkpoint's actor into a quantized model file and check it against the float
     /// actor.
     Export {
         /// A checkpoint (`best.safetensors` or `last.safetensors`).
@@ -71,7 +71,7 @@ enum Command {
         #[arg(long, default_value_t = 6)]
         calibration_episodes: usize,
         /// Quantization-aware fine-tuning steps before quantizing (`skyherd_trainer::qat`; 0:
-        /// quantize the checkpoint's actor as it is). The int8 model is compared with, and
+        /// quantize the checkpoint's actor as it is). The quantized model is compared with, and
         /// `--actor-out` writes, the checkpoint's actor.
         #[arg(long, default_value_t = 4_000)]
         qat_steps: usize,
@@ -88,7 +88,7 @@ enum Command {
         #[arg(long)]
         out: PathBuf,
     },
-    /// Evaluate an int8 model file (as it flies) and optionally the baselines, with test noise.
+    /// Evaluate a quantized model file (as it flies) and optionally the baselines, with test noise.
     Eval {
         /// The model file.
         #[arg(long)]
@@ -347,7 +347,7 @@ fn main() -> Result<()> {
             pool.install(|| -> Result<()> {
                 let rows =
                     evaluate_flat(&scenarios, episodes, seed_base, || ActorPolicy::new(actor))?;
-                print!("{}", markdown_table("mtddpg-v1 (int8)", &rows));
+                print!("{}", markdown_table("mtddpg-v1 (quantized)", &rows));
                 if let Some(float) = &float_actor {
                     let rows =
                         evaluate_flat(&scenarios, episodes, seed_base, || ActorPolicy::new(float))?;
