@@ -477,14 +477,6 @@ impl<'a> LayerView<'a> {
             .get(start..start.saturating_add(len))
             .unwrap_or(&[])
     }
-    /// Weight `(o, i)` as an integer (0 when out of range).
-    pub fn weight(&self, o: usize, i: usize) -> i32 {
-        let row = self.row(o);
-        match self.weight_width {
-            WeightWidth::Int8 => row.get(i).map_or(0, |&b| b as i8 as i32),
-            WeightWidth::Int16 => i16::from_le_bytes(word(row, i)) as i32,
-        }
-    }
     /// Lowest int16 output value: the zero point for ReLU layers, else -32768.
     #[inline]
     pub fn output_floor(&self) -> i16 {

@@ -1,5 +1,5 @@
 //! Model file decoder: any bytes either fail with an error or decode into a model that the
-//! int8 actor runs without panicking.
+//! quantized actor runs without panicking.
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
