@@ -80,7 +80,7 @@ fn daemon_log(run: &Run, drone: usize) -> String {
 }
 
 /// The paper's indoor test through the full MAVLink loop. The paper's drones finish in 30 s; the
-/// shipped model takes 36.9 s on seed 0 here (27-65 s on seeds 0-15, median 33 s; 28-35 s on
+/// shipped model takes 32.0 s on seed 0 here (26-60 s on seeds 0-15, median 32 s; 27-34 s on
 /// seeds 0-7 in the simulator alone, `skyherd-sim run --scenario indoor`). This asserts a
 /// bound the previous model (Lama clone, 57 s with today's room physics, 123 s before) misses,
 /// and prints the time. The lockstep loop is deterministic: a second run of the seed must give

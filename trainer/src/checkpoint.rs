@@ -179,7 +179,37 @@ fn serialize(
                 .map_err(|e| CheckpointError::Format(e.to_string()))
         })
         .collect::<Result<Vec<_>, _>>()?;
-    safetensors::serialize(views, &Some(meta)).map_err(|e| CheckpointError::Format(e.to_string()))
+    let bytes = safetensors::serialize(views, &Some(meta))
+        .map_err(|e| CheckpointError::Format(e.to_string()))?;
+    canonical_header(&bytes)
+}
+
+/// The same safetensors file with its JSON header's keys in sorted order. `safetensors`
+/// writes the metadata map in `HashMap` order, which changes from process to process; sorted,
+/// the same checkpoint is the same bytes every time (runs are compared by their files).
+fn canonical_header(bytes: &[u8]) -> Result<Vec<u8>, CheckpointError> {
+    let format = |what: &str| CheckpointError::Format(format!("serialized header: {what}"));
+    let length_bytes: [u8; 8] = bytes
+        .get(..8)
+        .and_then(|b| b.try_into().ok())
+        .ok_or_else(|| format("shorter than its length field"))?;
+    let length = usize::try_from(u64::from_le_bytes(length_bytes))
+        .map_err(|_| format("length does not fit"))?;
+    let end = 8usize
+        .checked_add(length)
+        .filter(|&e| e <= bytes.len())
+        .ok_or_else(|| format("length past the end"))?;
+    // serde_json's map is a BTreeMap (no `preserve_order`): parsing sorts every object.
+    let header: serde_json::Value =
+        serde_json::from_slice(&bytes[8..end]).map_err(|e| format(&e.to_string()))?;
+    let mut json = serde_json::to_vec(&header).map_err(|e| format(&e.to_string()))?;
+    // The data after the header stays 8-byte aligned, padded with spaces as safetensors does.
+    json.resize(json.len().next_multiple_of(8), b' ');
+    let mut out = Vec::with_capacity(8 + json.len() + bytes.len() - end);
+    out.extend_from_slice(&(json.len() as u64).to_le_bytes());
+    out.extend_from_slice(&json);
+    out.extend_from_slice(&bytes[end..]);
+    Ok(out)
 }
 
 fn read_dense(st: &SafeTensors<'_>, name: &str) -> Result<Dense, CheckpointError> {
@@ -428,5 +458,35 @@ mod tests {
             original.agent.actor
         );
         let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn the_same_checkpoint_is_the_same_bytes() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(6);
+        let network = NetworkConfig {
+            hidden: 4,
+            shared_layers: 1,
+        };
+        let checkpoint = Checkpoint {
+            agent: Agent::new(3, 2, network, TrainConfig::default().ddpg, &mut rng),
+            progress: Progress::default(),
+            config: TrainConfig::default(),
+        };
+        // Every call builds its metadata in a fresh HashMap, whose order varies with its seed.
+        let first = to_bytes(&checkpoint).expect("bytes");
+        for _ in 0..16 {
+            assert!(to_bytes(&checkpoint).expect("bytes") == first);
+        }
+        let (length, header) = SafeTensors::read_metadata(&first).expect("a safetensors file");
+        assert_eq!(length % 8, 0, "data stays 8-byte aligned");
+        let meta = header.metadata().clone().expect("metadata");
+        assert_eq!(meta["format"], "skyherd-trainer-checkpoint-v1");
+        let text = std::str::from_utf8(&first[8..8 + length]).expect("utf-8");
+        let keys: Vec<usize> = ["\"config\"", "\"format\"", "\"progress", "\"tasks\""]
+            .iter()
+            .map(|k| text.find(k).unwrap_or_else(|| panic!("{k} in {text:.200}")))
+            .collect();
+        assert!(keys.is_sorted(), "metadata keys in order: {keys:?}");
+        assert!(from_bytes(&first).is_ok());
     }
 }
