@@ -1,7 +1,8 @@
 //! One drone decision on the host: `obs::encode` + `Actor::infer` for N = 16, 256, 1024 targets,
 //! with M = 4 herders and with the adaptive M = 2^floor(log2(N) / 2). Checks zero heap use with
-//! a counting allocator. Model: seeded, untrained, F = 46, H = 64, S = 2 (what trained models
-//! are expected to look like; the timing does not depend on the weights).
+//! a counting allocator. Model: the shipped `models/mtddpg-v1.skym` (F = 46, H = 128, S = 1),
+//! what flies; inference alone also for a seeded F = 46, H = 64, S = 2 model (the timing does
+//! not depend on the weights, only on the shape).
 #![allow(missing_docs)]
 // The counting allocator that proves "zero heap" must implement `GlobalAlloc`, an unsafe trait;
 // it only forwards to `System`.
@@ -72,7 +73,14 @@ fn input(w: &World) -> ObsInput<'_> {
     }
 }
 
-fn model() -> Vec<u8> {
+/// The shipped model file.
+fn shipped_model() -> Vec<u8> {
+    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../models/mtddpg-v1.skym");
+    std::fs::read(path).unwrap_or_else(|e| panic!("{path}: {e}"))
+}
+
+/// A seeded, untrained H = 64, S = 2 model.
+fn seeded_model() -> Vec<u8> {
     let shape = ActorShape {
         features: FEATURES,
         hidden: 64,
@@ -123,8 +131,8 @@ fn cpu_time_per_call(mut f: impl FnMut()) -> Option<f64> {
 }
 
 fn bench(c: &mut Criterion) {
-    let bytes = model();
-    let actor = Actor::from_bytes(&bytes).unwrap();
+    let shipped = shipped_model();
+    let actor = Actor::from_bytes(&shipped).unwrap();
     let mut group = c.benchmark_group("decide");
     for n in [16usize, 256, 1024] {
         let adaptive = 1usize << ((n.ilog2() / 2) as usize);
@@ -156,14 +164,21 @@ fn bench(c: &mut Criterion) {
     let w = world(1024, 4);
     let mut features = [0.0; FEATURES];
     encode(&input(&w), &mut features).unwrap();
-    if let Some(us) = cpu_time_per_call(|| {
-        black_box(actor.infer(Task::Driving, black_box(&features)));
-    }) {
-        println!("thread CPU time per infer (H=64, S=2): {us:.2} us");
+    let seeded = seeded_model();
+    let small = Actor::from_bytes(&seeded).unwrap();
+    for (name, actor) in [
+        ("shipped, H=128, S=1", &actor),
+        ("seeded, H=64, S=2", &small),
+    ] {
+        if let Some(us) = cpu_time_per_call(|| {
+            black_box(actor.infer(Task::Driving, black_box(&features)));
+        }) {
+            println!("thread CPU time per infer ({name}): {us:.2} us");
+        }
+        group.bench_function(format!("infer only ({name})"), |b| {
+            b.iter(|| actor.infer(Task::Driving, black_box(&features)))
+        });
     }
-    group.bench_function("infer only (H=64, S=2)", |b| {
-        b.iter(|| actor.infer(Task::Driving, black_box(&features)))
-    });
     group.finish();
 }
 

@@ -114,30 +114,47 @@ pub fn dense(layer: &LayerView<'_>, input: &[i16], output: &mut [i16]) {
     let input = input.get(..layer.inputs).unwrap_or(input);
     let floor = layer.output_floor() as i32;
     let zero_point = layer.output_zero_point as i32;
-    for (o, y) in output.iter_mut().enumerate().take(layer.outputs) {
-        let scaled = match layer.weight_width {
-            WeightWidth::Int8 => {
+    let finish = |scaled: i32| {
+        scaled
+            .saturating_add(zero_point)
+            .clamp(floor, i16::MAX as i32) as i16
+    };
+    match layer.weight_width {
+        WeightWidth::Int8 => {
+            for (o, y) in output.iter_mut().enumerate().take(layer.outputs) {
                 // The decoder bounds the bias by 2^30 - 1 for int8 layers.
                 let acc = (layer.bias(o) as i32).wrapping_add(dot_int8(layer.row(o), input));
-                requantize(acc, layer.multiplier(o), layer.shift(o))
+                *y = finish(requantize(acc, layer.multiplier(o), layer.shift(o)));
             }
-            WeightWidth::Int16 => {
-                let acc = layer.bias(o).wrapping_add(dot_int16(layer.row(o), input));
-                requantize_wide(acc, layer.multiplier(o), layer.shift(o))
+        }
+        WeightWidth::Int16 => {
+            // x = 256 hi + lo with hi in [-128, 127] and lo in [0, 255], split once per layer
+            // so that every row is two int16 dot products in i32 lanes instead of one in i64.
+            let mut high = [0i16; MAX_WIDTH];
+            let mut low = [0i16; MAX_WIDTH];
+            for ((x, h), l) in input.iter().zip(&mut high).zip(&mut low) {
+                *h = x >> 8;
+                *l = x & 0xff;
             }
-        };
-        *y = scaled
-            .saturating_add(zero_point)
-            .clamp(floor, i16::MAX as i32) as i16;
+            let n = input.len();
+            let (high, low) = (&high[..n], &low[..n]);
+            for (o, y) in output.iter_mut().enumerate().take(layer.outputs) {
+                let (high, low) = dot_int16_split(layer.row(o), high, low);
+                let product = (i64::from(high) << 8) + i64::from(low);
+                let acc = layer.bias(o).wrapping_add(product);
+                *y = finish(requantize_wide(acc, layer.multiplier(o), layer.shift(o)));
+            }
+        }
     }
 }
 
 /// `sum_i w_i * x_i` for int8 weights (as raw bytes) and int16 activations.
 ///
-/// Written in lanes of 16 so that the compiler emits widening SIMD multiply-adds; every
-/// product fits an `i32` lane with room for the sum (`|w x| <= 2^22`, widths are at most
-/// [`MAX_WIDTH`]).
-#[inline]
+/// Written in lanes of 16 so that the compiler emits widening SIMD multiply-adds (`pmaddwd`
+/// on x86); every product fits an `i32` lane with room for the sum (`|w x| <= 2^22`, widths
+/// are at most [`MAX_WIDTH`]). Not inlined: inlined into [`dense`]'s row loop, the lanes were
+/// unrolled into scalar registers instead (measured 6.5 -> see `onboard/README.md`).
+#[inline(never)]
 fn dot_int8(weights: &[u8], input: &[i16]) -> i32 {
     const LANES: usize = 16;
     let mut lanes = [0i32; LANES];
@@ -156,26 +173,45 @@ fn dot_int8(weights: &[u8], input: &[i16]) -> i32 {
     lanes.iter().fold(tail, |sum, &lane| sum.wrapping_add(lane))
 }
 
-/// `sum_i w_i * x_i` for int16 weights (little-endian byte pairs) and int16 activations, in
-/// `i64` (each product fits an `i32`: `|w x| <= 2^30`).
-#[inline]
-fn dot_int16(weights: &[u8], input: &[i16]) -> i64 {
-    const LANES: usize = 8;
-    let mut lanes = [0i64; LANES];
+/// `(sum_i w_i * high_i, sum_i w_i * low_i)` for int16 weights (little-endian byte pairs) and
+/// the two byte-sized halves of the int16 activations ([`dense`] splits them), in `i32` lanes:
+/// with `|w| <= 2^15`, at most [`MAX_WIDTH`] = 256 terms, `high` in `[-128, 127]` and `low` in
+/// `[0, 255]`, each sum stays below `256 * 2^15 * 255 < 2^31`.
+#[inline(never)]
+fn dot_int16_split(weights: &[u8], high: &[i16], low: &[i16]) -> (i32, i32) {
+    (dot_int16_i32(weights, high), dot_int16_i32(weights, low))
+}
+
+/// `sum_i w_i * x_i` for int16 weights and activations in `i32` lanes; the caller bounds the
+/// sum ([`dot_int16_split`]).
+#[inline(always)]
+fn dot_int16_i32(weights: &[u8], input: &[i16]) -> i32 {
+    const LANES: usize = 16;
+    const HALF: usize = LANES / 2;
+    let mut lanes = [0i32; LANES];
     let (w_chunks, x_chunks) = (weights.chunks_exact(2 * LANES), input.chunks_exact(LANES));
-    let tail: i64 = w_chunks
-        .remainder()
-        .chunks_exact(2)
-        .zip(x_chunks.remainder())
-        .map(|(w, &x)| i64::from(i16::from_le_bytes([w[0], w[1]]) as i32 * x as i32))
-        .sum();
+    let (w_rest, x_rest) = (w_chunks.remainder(), x_chunks.remainder());
     for (w, x) in w_chunks.zip(x_chunks) {
         for k in 0..LANES {
             let wk = i16::from_le_bytes([w[2 * k], w[2 * k + 1]]) as i32;
-            lanes[k] += i64::from(wk * x[k] as i32);
+            lanes[k] = lanes[k].wrapping_add(wk * x[k] as i32);
         }
     }
-    lanes.iter().sum::<i64>() + tail
+    // The remainder in half-width lanes, then one by one: a 46-feature row is 2 x 16 + 8 + 6.
+    let (w_half, x_half) = (w_rest.chunks_exact(2 * HALF), x_rest.chunks_exact(HALF));
+    let tail: i32 = w_half
+        .remainder()
+        .chunks_exact(2)
+        .zip(x_half.remainder())
+        .map(|(w, &x)| i16::from_le_bytes([w[0], w[1]]) as i32 * x as i32)
+        .fold(0, i32::wrapping_add);
+    for (w, x) in w_half.zip(x_half) {
+        for k in 0..HALF {
+            let wk = i16::from_le_bytes([w[2 * k], w[2 * k + 1]]) as i32;
+            lanes[k] = lanes[k].wrapping_add(wk * x[k] as i32);
+        }
+    }
+    lanes.iter().fold(tail, |sum, &lane| sum.wrapping_add(lane))
 }
 
 /// The int16 output of `task`'s output layer for any decoded model, whatever its feature count.
@@ -203,4 +239,87 @@ pub fn dequantize_action(model: &ModelView<'_>, task: Task, q: [i16; 3]) -> [f32
 /// The normalised action for any decoded model, whatever its feature count.
 pub fn infer_any(model: &ModelView<'_>, task: Task, features: &[f32]) -> [f32; 3] {
     dequantize_action(model, task, infer_quantized_any(model, task, features))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The plain definition the kernels must equal: every product in i64.
+    fn reference(weights: &[i16], input: &[i16]) -> i64 {
+        weights
+            .iter()
+            .zip(input)
+            .map(|(&w, &x)| i64::from(w) * i64::from(x))
+            .sum()
+    }
+
+    /// What [`dense`] computes for an int16 row.
+    fn split_dot(weights: &[i16], input: &[i16]) -> i64 {
+        let n = weights.len();
+        let mut bytes = [0u8; 2 * MAX_WIDTH];
+        let (mut high, mut low) = ([0i16; MAX_WIDTH], [0i16; MAX_WIDTH]);
+        for (k, (&w, &x)) in weights.iter().zip(input).enumerate() {
+            bytes[2 * k..2 * k + 2].copy_from_slice(&w.to_le_bytes());
+            high[k] = x >> 8;
+            low[k] = x & 0xff;
+        }
+        let (high, low) = dot_int16_split(&bytes[..2 * n], &high[..n], &low[..n]);
+        (i64::from(high) << 8) + i64::from(low)
+    }
+
+    #[test]
+    fn the_split_int16_dot_product_is_exact_at_the_extremes() {
+        // Widest row, every weight and input at the corners of int16: the sums the i32 lanes
+        // must hold without overflow.
+        for (w, x) in [
+            (i16::MIN, i16::MIN),
+            (i16::MIN, i16::MAX),
+            (i16::MAX, i16::MIN),
+            (i16::MAX, i16::MAX),
+            (i16::MIN, -1),
+            (i16::MIN, 255),
+        ] {
+            let (weights, input) = ([w; MAX_WIDTH], [x; MAX_WIDTH]);
+            assert_eq!(
+                split_dot(&weights, &input),
+                reference(&weights, &input),
+                "w = {w}, x = {x}"
+            );
+        }
+        // Every length from 0 to the widest (lanes and tails), pseudo-random values.
+        let mut state = 0x9E37_79B9_7F4A_7C15_u64;
+        let mut next = || {
+            state ^= state << 13;
+            state ^= state >> 7;
+            state ^= state << 17;
+            state as i16
+        };
+        for n in 0..=MAX_WIDTH {
+            let (mut weights, mut input) = ([0i16; MAX_WIDTH], [0i16; MAX_WIDTH]);
+            for k in 0..n {
+                weights[k] = next();
+                input[k] = next();
+            }
+            let (weights, input) = (&weights[..n], &input[..n]);
+            assert_eq!(
+                split_dot(weights, input),
+                reference(weights, input),
+                "n = {n}"
+            );
+        }
+    }
+
+    #[test]
+    fn the_int8_dot_product_is_exact_at_the_extremes() {
+        for (w, x) in [
+            (i8::MIN, i16::MIN),
+            (i8::MAX, i16::MIN),
+            (i8::MIN, i16::MAX),
+        ] {
+            let (weights, input) = ([w as u8; MAX_WIDTH], [x; MAX_WIDTH]);
+            let expected = reference(&[i16::from(w); MAX_WIDTH], &input);
+            assert_eq!(i64::from(dot_int8(&weights, &input)), expected);
+        }
+    }
 }

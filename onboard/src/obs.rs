@@ -313,9 +313,12 @@ fn validate(input: &ObsInput<'_>) -> Result<(), ObsError> {
         input.area[2],
         input.max_speed,
     ];
-    let finite = scalars.iter().all(|x| x.is_finite())
-        && input.herders.iter().flatten().all(|x| x.is_finite())
-        && input.targets.iter().flatten().all(|x| x.is_finite());
+    // Folded without short-circuit, which vectorises: a branch per coordinate cost a tenth of
+    // the encoder at N = 1024.
+    let all_finite = |values: &[f32]| values.iter().fold(true, |ok, x| ok & x.is_finite());
+    let finite = all_finite(&scalars)
+        && all_finite(input.herders.as_flattened())
+        && all_finite(input.targets.as_flattened());
     if !finite {
         return Err(ObsError::NonFinite);
     }
