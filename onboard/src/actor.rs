@@ -153,7 +153,7 @@ pub fn dense(layer: &LayerView<'_>, input: &[i16], output: &mut [i16]) {
 /// Written in lanes of 16 so that the compiler emits widening SIMD multiply-adds (`pmaddwd`
 /// on x86); every product fits an `i32` lane with room for the sum (`|w x| <= 2^22`, widths
 /// are at most [`MAX_WIDTH`]). Not inlined: inlined into [`dense`]'s row loop, the lanes were
-/// unrolled into scalar registers instead (measured 6.5 -> see `onboard/README.md`).
+/// unrolled into scalar registers instead (see the measurements in `onboard/README.md`).
 #[inline(never)]
 fn dot_int8(weights: &[u8], input: &[i16]) -> i32 {
     const LANES: usize = 16;

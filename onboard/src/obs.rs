@@ -256,6 +256,19 @@ fn dist2(a: [f32; 2], b: [f32; 2]) -> f32 {
     d[0] * d[0] + d[1] * d[1]
 }
 
+/// The smaller of two finite numbers. `f32::min` also sorts out NaN, which costs a compare
+/// and a blend on every step of a running minimum; validated input has none.
+#[inline(always)]
+fn smaller(a: f32, b: f32) -> f32 {
+    if b < a { b } else { a }
+}
+
+/// The larger of two finite numbers (see [`smaller`]).
+#[inline(always)]
+fn larger(a: f32, b: f32) -> f32 {
+    if b > a { b } else { a }
+}
+
 fn unit_or(v: [f32; 2], fallback: [f32; 2]) -> [f32; 2] {
     let n = sqrtf(v[0] * v[0] + v[1] * v[1]);
     if n > 1e-6 {
@@ -365,13 +378,9 @@ pub fn encode(input: &ObsInput<'_>, out: &mut [f32; FEATURES]) -> Result<LocalFr
         if to_goal2 > farthest.0 {
             farthest = (to_goal2, t);
         }
-        if to_goal2 <= r2 {
-            inside += 1;
-        }
+        inside += usize::from(to_goal2 <= r2);
         let to_me2 = dist2(t, own);
-        if to_me2 <= r2 {
-            near_me += 1;
-        }
+        near_me += usize::from(to_me2 <= r2);
         if to_me2 < nearest.0 {
             nearest = (to_me2, t);
         }
@@ -388,8 +397,8 @@ pub fn encode(input: &ObsInput<'_>, out: &mut [f32; FEATURES]) -> Result<LocalFr
                 my_farthest = (to_goal2, t);
             }
         }
-        lo = [lo[0].min(t[0]), lo[1].min(t[1])];
-        hi = [hi[0].max(t[0]), hi[1].max(t[1])];
+        lo = [smaller(lo[0], t[0]), smaller(lo[1], t[1])];
+        hi = [larger(hi[0], t[0]), larger(hi[1], t[1])];
     }
     let centroid = if n > 0 {
         [sum[0] / n as f32, sum[1] / n as f32]
@@ -416,7 +425,7 @@ pub fn encode(input: &ObsInput<'_>, out: &mut [f32; FEATURES]) -> Result<LocalFr
     let mut octants = [0usize; 8];
     for &t in input.targets {
         let d2 = dist2(t, centroid);
-        max_spread2 = max_spread2.max(d2);
+        max_spread2 = larger(max_spread2, d2);
         spread_sum += sqrtf(d2);
         octants[octant(frame.to_local(sub(t, own)))] += 1;
     }
