@@ -27,13 +27,13 @@ fn fingerprint() -> u64 {
             hash = hash.wrapping_mul(0x0000_0100_0000_01b3);
         }
     };
-    let mut numbers = Numbers(0x5EED_0F_F1E1D5);
+    let mut numbers = Numbers(0x5EED_0FF1_E1D5);
     for case in 0..600usize {
         let n = [0usize, 1, 2, 3, 4, 7, 16, 33, 64, 255, 256, 1024][case % 12];
         let m = 1 + (case / 12) % 33;
         let scale = [10.0_f32, 500.0, 1.0][case % 3];
         let on_grid = case % 5 == 0;
-        let mut point = |numbers: &mut Numbers| {
+        let point = |numbers: &mut Numbers| {
             let v = numbers.unit() * scale;
             if on_grid { (v * 4.0).round() / 4.0 } else { v }
         };
