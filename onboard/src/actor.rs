@@ -321,5 +321,24 @@ mod tests {
             let expected = reference(&[i16::from(w); MAX_WIDTH], &input);
             assert_eq!(i64::from(dot_int8(&weights, &input)), expected);
         }
+        // Every length (the 16-lane body and its tail), pseudo-random values.
+        let mut state = 0x2545_F491_4F6C_DD1D_u64;
+        for n in 0..=MAX_WIDTH {
+            let (mut bytes, mut wide, mut input) =
+                ([0u8; MAX_WIDTH], [0i16; MAX_WIDTH], [0i16; MAX_WIDTH]);
+            for k in 0..n {
+                state ^= state << 13;
+                state ^= state >> 7;
+                state ^= state << 17;
+                bytes[k] = state as u8;
+                wide[k] = i16::from(state as u8 as i8);
+                input[k] = (state >> 16) as i16;
+            }
+            assert_eq!(
+                i64::from(dot_int8(&bytes[..n], &input[..n])),
+                reference(&wide[..n], &input[..n]),
+                "n = {n}"
+            );
+        }
     }
 }

@@ -11,7 +11,8 @@
 //! * `fence+floor`: the onboard safety rules (`Limits::arena`: 0.25 m fence, 0.5 m floor) trim
 //!   every command, and the encoder reads the height above the floor, as the daemon does;
 //! * `stale-other`: the other drones' positions are one tick old, as in the ground's snapshot;
-//! * `all`: the three together.
+//!   `stale-extrap` the same, extrapolated one tick ahead from their last two positions;
+//! * `all`: the three together (`all-extrap` with the extrapolation).
 //!
 //! ```sh
 //! cargo run --release -p skyherd-sim --example loop_costs -- models/mtddpg-v1.skym 64
@@ -35,6 +36,9 @@ struct Effects {
     narrow_gate: bool,
     safety: bool,
     stale_other: bool,
+    /// With `stale_other`: the drone extrapolates the other drones one tick ahead from their
+    /// last two positions (constant velocity), as a daemon could from two snapshots.
+    extrapolate: bool,
 }
 
 /// The model with the chosen loop effects; see the module docs.
@@ -45,6 +49,7 @@ struct LoopLike {
     sensor: SensorConfig,
     tracking: Option<(DetectionSensor, Tracker)>,
     tracks: Vec<[f64; 2]>,
+    before_previous: Vec<[f64; 3]>,
     previous_herders: Vec<[f64; 3]>,
     herders_now: Vec<[f64; 3]>,
     loaded_step: Option<u64>,
@@ -65,6 +70,7 @@ impl LoopLike {
             sensor: SensorConfig::for_scenario(scenario),
             tracking: None,
             tracks: Vec::new(),
+            before_previous: Vec::new(),
             previous_herders: Vec::new(),
             herders_now: Vec::new(),
             loaded_step: None,
@@ -78,9 +84,13 @@ impl LoopLike {
             return;
         }
         self.loaded_step = Some(world.step);
-        self.previous_herders = std::mem::replace(&mut self.herders_now, world.herders.clone());
+        let previous = std::mem::replace(&mut self.herders_now, world.herders.clone());
+        self.before_previous = std::mem::replace(&mut self.previous_herders, previous);
         if self.previous_herders.is_empty() {
             self.previous_herders = world.herders.clone();
+        }
+        if self.before_previous.is_empty() {
+            self.before_previous = self.previous_herders.clone();
         }
         if let Some((sensor, tracker)) = self.tracking.as_mut() {
             let detections = sensor.scan(&world.targets);
@@ -96,6 +106,8 @@ impl Policy for LoopLike {
     fn reset(&mut self, world: &World, seed: u64) {
         self.loaded_step = None;
         self.herders_now.clear();
+        self.previous_herders.clear();
+        self.before_previous.clear();
         self.tracks.clear();
         self.tracking = self.effects.tracked.then(|| {
             let sensor = DetectionSensor::new(self.sensor.clone(), sensor_seed(seed))
@@ -131,7 +143,12 @@ impl Policy for LoopLike {
         }
         for (j, h) in seen.herders.iter_mut().enumerate() {
             if self.effects.stale_other && j != herder {
-                *h = self.previous_herders[j];
+                let (last, before) = (self.previous_herders[j], self.before_previous[j]);
+                *h = if self.effects.extrapolate {
+                    [0, 1, 2].map(|k| 2.0 * last[k] - before[k])
+                } else {
+                    last
+                };
             }
             if self.effects.safety {
                 h[2] = (h[2] - f64::from(self.limits.fence_min[2])).max(0.0);
@@ -195,11 +212,29 @@ fn main() {
             },
         ),
         (
+            "stale-extrap",
+            Effects {
+                stale_other: true,
+                extrapolate: true,
+                ..Effects::default()
+            },
+        ),
+        (
             "all",
             Effects {
                 tracked: true,
                 safety: true,
                 stale_other: true,
+                ..Effects::default()
+            },
+        ),
+        (
+            "all-extrap",
+            Effects {
+                tracked: true,
+                safety: true,
+                stale_other: true,
+                extrapolate: true,
                 ..Effects::default()
             },
         ),
