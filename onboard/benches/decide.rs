@@ -164,6 +164,10 @@ fn bench(c: &mut Criterion) {
     let w = world(1024, 4);
     let mut features = [0.0; FEATURES];
     encode(&input(&w), &mut features).unwrap();
+    let mut scratch = [0.0; FEATURES];
+    group.bench_function("encode only (N=1024, M=4)", |b| {
+        b.iter(|| encode(black_box(&input(&w)), &mut scratch).map(|frame| frame.forward))
+    });
     let seeded = seeded_model();
     let small = Actor::from_bytes(&seeded).unwrap();
     for (name, actor) in [
