@@ -170,6 +170,9 @@ fn bench(c: &mut Criterion) {
     });
     let seeded = seeded_model();
     let small = Actor::from_bytes(&seeded).unwrap();
+    group.bench_function("encode+infer, seeded H=64, S=2 (N=1024, M=4)", |b| {
+        b.iter(|| decide(&small, black_box(&input(&w))))
+    });
     for (name, actor) in [
         ("shipped, H=128, S=1", &actor),
         ("seeded, H=64, S=2", &small),
