@@ -4,12 +4,14 @@
 //! replays the `indoor` preset in the simulator with one loop effect at a time wrapped around
 //! the model, over many seeds, and prints the completion times:
 //!
+//! * `simulator`: the bare actor (`ActorPolicy::new`), none of the loop's effects;
 //! * `tracked`: the model sees the ground's tracks (`TrackerConfig::scaled`, fed by the SITL
 //!   detection sensor, `SensorConfig::for_scenario`: 2 cm noise, 95 % detection) instead of the
 //!   simulator's noisy truth;
 //!   `narrow-gate` the same with the tracker gate scaled by length alone, as it was before;
 //! * `fence+floor`: the onboard safety rules (`Limits::arena`: 0.25 m fence, 0.5 m floor) trim
-//!   every command, and the encoder reads the height above the floor, as the daemon does;
+//!   every command, and the encoder reads the height above the floor, as the daemon does
+//!   (what `skyherd-sim` does with a model file: `ActorPolicy::flying`);
 //! * `stale-other`: the other drones' positions are one tick old, as in the ground's snapshot;
 //!   `stale-extrap` the same, extrapolated one tick ahead from their last two positions;
 //! * `all`: the three together (`all-extrap` with the extrapolation).
@@ -20,8 +22,8 @@
 
 use skyherd_ground::tracking::{TrackedWorld, Tracker, TrackerConfig};
 use skyherd_onboard::safety::{self, Limits, Situation};
-use skyherd_sim::learned::ModelPolicy;
-use skyherd_sim::policy::{Policy, PolicyFactory};
+use skyherd_sim::learned::{ActorPolicy, ModelPolicy};
+use skyherd_sim::policy::Policy;
 use skyherd_sim::sitl::mission::sensor_seed;
 use skyherd_sim::sitl::sensor::{DetectionSensor, SensorConfig};
 use skyherd_sim::world::World;
@@ -244,7 +246,11 @@ fn main() {
         let mut env = Env::new(scenario.clone()).expect("a valid scenario");
         let mut times = Vec::new();
         for seed in 0..seeds {
-            let mut policy = LoopLike::new(model.make(), effects, &scenario);
+            let mut policy = LoopLike::new(
+                Box::new(ActorPolicy::new(*model.actor())),
+                effects,
+                &scenario,
+            );
             let summary = run_episode(&mut env, &mut policy, seed, |_, _| {}).expect("an episode");
             times.push(if summary.success {
                 summary.time_s

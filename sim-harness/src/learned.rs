@@ -2,10 +2,13 @@
 //!
 //! Every herder encodes its own observation with the onboard encoder (through
 //! [`EncoderBuffers`], the one copy), asks the actor for a normalised local-frame action and turns
-//! it into a simulator-frame velocity with `LocalFrame::action_to_world`. [`ModelPolicy`] loads an
-//! quantized model file and runs it through `skyherd_onboard::actor::Actor`, the code that flies, so
-//! `skyherd-sim eval --methods model:models/mtddpg-v1.skym` evaluates the shipped model as it
-//! flies beside the baselines.
+//! it into a simulator-frame velocity with `LocalFrame::action_to_world`. [`ModelPolicy`] loads a
+//! quantized model file and runs it through `skyherd_onboard::actor::Actor`, the code that flies,
+//! and through the daemon's flight rules ([`ActorPolicy::flying`]: `skyherd_onboard::safety`'s
+//! fence, altitude band and speed caps over `Limits::arena`, and the encoder reading the drone's
+//! height above the band's floor), so `skyherd-sim eval --methods model:models/mtddpg-v1.skym`
+//! evaluates the shipped model as it flies beside the baselines. The trainer's rollouts use the
+//! bare actor ([`ActorPolicy::new`]).
 //!
 //! ```
 //! use skyherd_sim::learned::ModelPolicy;
@@ -26,6 +29,7 @@ use std::path::{Path, PathBuf};
 use skyherd_model::{FloatActor, FormatError, Task};
 use skyherd_onboard::actor::Actor;
 use skyherd_onboard::obs::FEATURES;
+use skyherd_onboard::safety::{self, Limits, Situation};
 
 use crate::obs::EncoderBuffers;
 use crate::policy::{Policy, PolicyFactory};
@@ -62,19 +66,34 @@ pub struct ActorPolicy<A> {
     buffers: EncoderBuffers,
     loaded_step: Option<u64>,
     features: [f32; FEATURES],
+    /// Whether the daemon's flight rules apply (see [`ActorPolicy::flying`]).
+    flight_rules: bool,
     /// Every encoded observation is appended here when recording (for calibration and parity).
     pub recorded: Option<Vec<(Task, [f32; FEATURES])>>,
 }
 
 impl<A: Infer> ActorPolicy<A> {
-    /// Wraps `actor`.
+    /// Wraps `actor`: the bare actor, as the trainer rolls it out.
     pub fn new(actor: A) -> Self {
         ActorPolicy {
             actor,
             buffers: EncoderBuffers::default(),
             loaded_step: None,
             features: [0.0; FEATURES],
+            flight_rules: false,
             recorded: None,
+        }
+    }
+
+    /// Wraps `actor` as the onboard daemon flies it: the encoder reads the drone's height above
+    /// the altitude band's floor, and every command goes through `skyherd_onboard::safety::check`
+    /// with `Limits::arena(area, herder speed limit)` at the drone's observed position (the
+    /// simulator has no uplink delay: snapshot age 0). A herder that the bare actor would fly
+    /// out of the arena, ending the episode, is trimmed at the fence as on the drone.
+    pub fn flying(actor: A) -> Self {
+        ActorPolicy {
+            flight_rules: true,
+            ..ActorPolicy::new(actor)
         }
     }
 
@@ -105,16 +124,46 @@ impl<A: Infer> Policy for ActorPolicy<A> {
             self.buffers.fill(world);
             self.loaded_step = Some(world.step);
         }
-        match self.buffers.encode(herder, &mut self.features) {
+        let limits = self.flight_rules.then(|| {
+            let a = world.area;
+            Limits::arena(
+                [a.width as f32, a.depth as f32, a.ceiling as f32],
+                world.limits.herder as f32,
+            )
+        });
+        let own = world.herders.get(herder).map(|h| h.map(|c| c as f32));
+        let encoded = match (limits, own) {
+            // As the daemon: the height above the band's floor (core.rs, `encoded_own`).
+            (Some(l), Some(p)) => self.buffers.encode_at_altitude(
+                herder,
+                (p[2] - l.fence_min[2]).max(0.0),
+                &mut self.features,
+            ),
+            _ => self.buffers.encode(herder, &mut self.features),
+        };
+        // The drone's failsafe for an unusable observation: hold position (through the rules).
+        let request = match encoded {
             Ok(frame) => {
                 if let Some(log) = self.recorded.as_mut() {
                     log.push((world.task, self.features));
                 }
-                let v = frame.action_to_world(self.actor.infer(world.task, &self.features));
-                v.map(f64::from)
+                frame.action_to_world(self.actor.infer(world.task, &self.features))
             }
-            // The drone's failsafe for an unusable observation: hold position.
             Err(_) => [0.0; 3],
+        };
+        match (limits, own) {
+            (Some(l), Some(position)) => safety::check(
+                &l,
+                &Situation {
+                    position,
+                    velocity: request,
+                    snapshot_age_s: 0.0,
+                    snapshot_finite: true,
+                },
+            )
+            .velocity
+            .map(f64::from),
+            _ => request.map(f64::from),
         }
     }
 }
@@ -160,7 +209,8 @@ impl std::error::Error for ModelPolicyError {
     }
 }
 
-/// An quantized model file as a [`PolicyFactory`]: every policy runs the onboard `Actor`.
+/// A quantized model file as a [`PolicyFactory`]: every policy runs the onboard `Actor` under the
+/// daemon's flight rules ([`ActorPolicy::flying`]).
 #[derive(Clone, Debug)]
 pub struct ModelPolicy {
     name: String,
@@ -205,13 +255,14 @@ impl PolicyFactory for ModelPolicy {
     }
 
     fn make(&self) -> Box<dyn Policy + Send> {
-        Box::new(ActorPolicy::new(self.actor))
+        Box::new(ActorPolicy::flying(self.actor))
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::policy::Policy as _;
     use crate::{Env, HerderCount, Scenario};
 
     /// "Full speed forward, up" whatever the observation.
@@ -239,6 +290,71 @@ mod tests {
         let recorded = policy.recorded.expect("recording");
         assert_eq!(recorded.len(), 3);
         assert_ne!(recorded[0].1, recorded[1].1, "herders see different worlds");
+    }
+
+    /// A world of one herder `at`, four targets at (250, 250) and the goal due east of them.
+    fn herder_at(at: [f64; 3]) -> World {
+        let mut scenario = Scenario::paper_drive().without_noise();
+        scenario.targets = 4;
+        scenario.herders = HerderCount::Fixed(1);
+        let mut world = Env::new(scenario).expect("valid scenario").reset(0).clone();
+        world.targets = vec![
+            [250.0, 250.0],
+            [252.0, 250.0],
+            [250.0, 252.0],
+            [252.0, 252.0],
+        ];
+        world.goal.center = [400.0, 251.0];
+        world.herders = vec![at];
+        world
+    }
+
+    #[test]
+    fn flying_keeps_the_bare_actor_inside_the_fence() {
+        // 0.3 m from the east wall, beyond the 1 m fence; "forward" is east, into the wall.
+        let world = herder_at([499.7, 251.0, 2.0]);
+        let bare = ActorPolicy::new(Forward).act(&world, 0);
+        assert!(
+            bare[0] > 3.0,
+            "the bare actor flies into the wall: {bare:?}"
+        );
+        let flown = ActorPolicy::flying(Forward).act(&world, 0);
+        assert!(
+            flown[0] < 0.0,
+            "outside the fence it steers back in: {flown:?}"
+        );
+        let speed = (flown[0] * flown[0] + flown[1] * flown[1] + flown[2] * flown[2]).sqrt();
+        assert!(speed <= world.limits.herder + 1e-6, "{speed}");
+
+        // Well inside, the rules only cap the climb at 2 m/s, keeping the direction.
+        let world = herder_at([300.0, 251.0, 2.0]);
+        let bare = ActorPolicy::new(Forward).act(&world, 0);
+        let flown = ActorPolicy::flying(Forward).act(&world, 0);
+        let keep = 2.0 / bare[2];
+        for k in 0..3 {
+            assert!(
+                (flown[k] - keep * bare[k]).abs() < 1e-4,
+                "{bare:?} vs {flown:?}"
+            );
+        }
+    }
+
+    #[test]
+    fn flying_reads_the_height_above_the_band_floor() {
+        // At the 0.5 m floor the actor sees itself on the ground (feature 22 is 0), as onboard.
+        let world = herder_at([300.0, 251.0, 0.5]);
+        let mut flown = ActorPolicy {
+            recorded: Some(Vec::new()),
+            ..ActorPolicy::flying(Forward)
+        };
+        let mut bare = ActorPolicy::recording(Forward);
+        flown.act(&world, 0);
+        bare.act(&world, 0);
+        let (flown, bare) = (flown.recorded.unwrap()[0].1, bare.recorded.unwrap()[0].1);
+        assert_eq!(flown[22], 0.0);
+        assert!(bare[22] > 0.0);
+        assert_eq!(flown[..22], bare[..22]);
+        assert_eq!(flown[23..], bare[23..]);
     }
 
     #[test]

@@ -48,6 +48,23 @@ impl EncoderBuffers {
         }
     }
 
+    /// As [`EncoderBuffers::encode`], with the encoding drone's own altitude read as
+    /// `own_altitude` (metres) instead of the filled one; the buffers are left as filled.
+    pub fn encode_at_altitude(
+        &mut self,
+        own_index: usize,
+        own_altitude: f32,
+        out: &mut [f32; FEATURES],
+    ) -> Result<LocalFrame, ObsError> {
+        let Some(own) = self.herders.get(own_index).copied() else {
+            return self.encode(own_index, out);
+        };
+        self.herders[own_index][2] = own_altitude;
+        let frame = self.encode(own_index, out);
+        self.herders[own_index] = own;
+        frame
+    }
+
     /// Encodes herder `own_index`'s features into `out`; returns its local frame, in which the
     /// actor's normalised action is read (`LocalFrame::action_to_world`).
     pub fn encode(

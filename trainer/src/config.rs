@@ -109,6 +109,11 @@ pub struct EvolutionConfig {
     pub learning_rate: f32,
     /// A failed episode scores this many lower bounds.
     pub failure_ratio: f64,
+    /// A failed episode scores `failure_progress_span * (1 - f)` more, where `f` is the largest
+    /// fraction of the targets that were inside the goal at once: partial credit, so that
+    /// perturbations that get a big flock closer to done rank above those that do not, where
+    /// every episode fails (N >= 256). 0 (the default) scores every failure alike.
+    pub failure_progress_span: f64,
     /// Episodes are cut (and count as failed) after this many steps.
     pub step_limit: u64,
     /// Check the current heads on held-out seeds every this many generations (and after the last).
@@ -139,6 +144,7 @@ impl Default for EvolutionConfig {
             sigma: 0.02,
             learning_rate: 0.01,
             failure_ratio: 12.0,
+            failure_progress_span: 0.0,
             step_limit: 900,
             check_every: 5,
             check_rounds: 4,
@@ -566,6 +572,9 @@ impl TrainConfig {
         }
         if !(ev.failure_ratio >= 1.0 && ev.failure_ratio.is_finite()) {
             return bad("evolution.failure_ratio", "must be finite and >= 1");
+        }
+        if !(ev.failure_progress_span >= 0.0 && ev.failure_progress_span.is_finite()) {
+            return bad("evolution.failure_progress_span", "must be finite and >= 0");
         }
         if ev.step_limit == 0 || ev.check_rounds == 0 {
             return bad("evolution", "step_limit and check_rounds must be >= 1");

@@ -5,7 +5,9 @@
 //! For each task in turn, the parameters of that task's own layers (its input layer and its
 //! output layer, Fig. 2) are perturbed with antithetic Gaussian noise, `theta ± sigma eps`; every
 //! perturbed actor herds the same episodes (common random numbers: one seed set per
-//! generation), each episode scoring `time / lower bound` or `failure_ratio` if it fails; the
+//! generation), each episode scoring `time / lower bound` or, if it fails, `failure_ratio` plus
+//! optional partial credit (`failure_progress_span` times the share of the flock that never made
+//! it into the goal at once); the
 //! centred ranks of the scores weight the noise into a gradient estimate (Salimans et al. 2017)
 //! and Adam takes the step. The shared hidden layers are left alone, so tuning one task never
 //! changes the other's behaviour. Every `check_every` generations the current heads herd a
@@ -48,9 +50,10 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 use rayon::prelude::*;
 use skyherd_model::Task;
-use skyherd_sim::env::run_episodes_parallel;
+use skyherd_sim::env::run_episode;
 use skyherd_sim::task::parse_task;
-use skyherd_sim::{EnvError, Scenario};
+use skyherd_sim::world::World;
+use skyherd_sim::{Env, EnvError, Scenario};
 
 use crate::config::{EvolutionConfig, EvolutionScenario, RewardConfig};
 use crate::network::MultiTaskMlp;
@@ -143,12 +146,60 @@ pub fn scenario_of(s: &EvolutionScenario, step_limit: u64) -> Option<Scenario> {
     ))
 }
 
+/// How an episode is scored: `time / lower bound` when it succeeds, else
+/// `failure_ratio + progress_span * (1 - f)` with `f` the largest fraction of the targets that
+/// were inside the goal at once.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Scoring {
+    /// A failed episode scores at least this many lower bounds.
+    pub failure_ratio: f64,
+    /// How much more a failure that never had any target inside the goal scores.
+    pub progress_span: f64,
+}
+
+impl Scoring {
+    /// The scoring `config` asks for.
+    pub fn of(config: &EvolutionConfig) -> Scoring {
+        Scoring {
+            failure_ratio: config.failure_ratio,
+            progress_span: config.failure_progress_span,
+        }
+    }
+}
+
+/// Fraction of `world`'s targets inside the goal circle (1 for an empty flock).
+pub fn fraction_inside(world: &World) -> f64 {
+    let n = world.targets.len();
+    if n == 0 {
+        return 1.0;
+    }
+    let g = world.goal;
+    let r2 = g.radius * g.radius;
+    let inside = world
+        .targets
+        .iter()
+        .filter(|t| {
+            let (dx, dy) = (t[0] - g.center[0], t[1] - g.center[1]);
+            dx * dx + dy * dy <= r2
+        })
+        .count();
+    inside as f64 / n as f64
+}
+
+/// One episode's score and outcome.
+#[derive(Clone, Copy, Debug)]
+struct Scored {
+    score: f64,
+    success: bool,
+    ratio: f64,
+}
+
 /// Herds every scenario's episodes (seeds `seed_base + 100 k + i` for scenario `k`) with
 /// `actor` and scores them.
 pub fn fitness(
     actor: &MultiTaskMlp,
     scenarios: &[(Scenario, usize)],
-    failure_ratio: f64,
+    scoring: Scoring,
     seed_base: u64,
 ) -> Result<Fitness, EnvError> {
     let mut total = 0.0;
@@ -159,15 +210,38 @@ pub fn fitness(
         let seeds: Vec<u64> = (0..*count as u64)
             .map(|i| seed_base + 100 * k as u64 + i)
             .collect();
-        for e in run_episodes_parallel(scenario, &seeds, || ActorPolicy::new(actor))? {
-            episodes += 1;
-            if e.success {
+        let env = Env::new(scenario.clone())?;
+        let scored = seeds
+            .par_iter()
+            .map_with(env, |env, &seed| {
+                let mut policy = ActorPolicy::new(actor);
+                // Only watched when partial credit is asked for (it costs a pass over the flock).
+                let watch = scoring.progress_span > 0.0;
+                let mut best_inside = 0.0f64;
+                let e = run_episode(env, &mut policy, seed, |world, _| {
+                    if watch {
+                        best_inside = best_inside.max(fraction_inside(world));
+                    }
+                })?;
                 let ratio = e.time_s / e.lower_bound_s.max(1e-9);
+                let score = if e.success {
+                    ratio
+                } else {
+                    scoring.failure_ratio + scoring.progress_span * (1.0 - best_inside)
+                };
+                Ok(Scored {
+                    score,
+                    success: e.success,
+                    ratio,
+                })
+            })
+            .collect::<Result<Vec<Scored>, EnvError>>()?;
+        for e in scored {
+            episodes += 1;
+            total += e.score;
+            if e.success {
                 wins += 1;
-                win_ratio += ratio;
-                total += ratio;
-            } else {
-                total += failure_ratio;
+                win_ratio += e.ratio;
             }
         }
     }
@@ -203,7 +277,7 @@ pub fn evolve_task(
         .map(|(s, n)| (s.clone(), n * config.check_rounds))
         .collect();
     let check_of =
-        |a: &MultiTaskMlp| fitness(a, &check, config.failure_ratio, config.check_seed_base);
+        |a: &MultiTaskMlp| fitness(a, &check, Scoring::of(config), config.check_seed_base);
     let start_check = check_of(actor)?;
     let mut current = actor.clone();
     let mut best = (start_check, actor.clone());
@@ -236,7 +310,7 @@ pub fn evolve_task(
                         .map(|(x, z)| x + sign * sigma * z)
                         .collect();
                     set_head_parameters(&mut a, t, &p);
-                    pair[slot] = fitness(&a, &train, config.failure_ratio, seed_base)?.fitness;
+                    pair[slot] = fitness(&a, &train, Scoring::of(config), seed_base)?.fitness;
                 }
                 Ok(pair)
             })
@@ -404,6 +478,37 @@ mod tests {
         assert_eq!(a.actor.shared, actor.shared);
         let c = Task::Collecting.index();
         assert_eq!(head_parameters(&a.actor, c), head_parameters(&actor, c));
+    }
+
+    #[test]
+    fn partial_credit_ranks_failures_by_how_much_of_the_flock_got_in() {
+        // A random actor in 10 steps fails every episode of 16 targets.
+        let actor = tiny_actor();
+        let scenario = scenario_of(&EvolutionScenario::paper("driving", 16, 2, 1), 10).unwrap();
+        let episodes = [(scenario, 3)];
+        let flat = Scoring {
+            failure_ratio: 12.0,
+            progress_span: 0.0,
+        };
+        let plain = fitness(&actor, &episodes, flat, 9).unwrap();
+        assert_eq!(plain.success_rate, 0.0);
+        assert_eq!(plain.fitness, -12.0, "every failure alike");
+        let shaped = Scoring {
+            progress_span: 6.0,
+            ..flat
+        };
+        let credited = fitness(&actor, &episodes, shaped, 9).unwrap();
+        // Nobody starts in the goal (the start circle is 150 m from it), so none of the credit.
+        assert_eq!(credited.fitness, -18.0);
+
+        let mut world = Env::new(Scenario::paper_drive()).unwrap().reset(0).clone();
+        assert_eq!(fraction_inside(&world), 0.0);
+        let goal = world.goal.center;
+        world.targets[..4].fill(goal);
+        let n = world.targets.len() as f64;
+        assert_eq!(fraction_inside(&world), 4.0 / n);
+        world.targets.clear();
+        assert_eq!(fraction_inside(&world), 1.0, "an empty flock is all in");
     }
 
     #[test]
