@@ -114,6 +114,9 @@ pub struct EvolutionConfig {
     /// perturbations that get a big flock closer to done rank above those that do not, where
     /// every episode fails (N >= 256). 0 (the default) scores every failure alike.
     pub failure_progress_span: f64,
+    /// Rank the perturbed actors within each scenario and average the rank differences
+    /// (weighted by episodes) instead of ranking them on the mean score of all episodes.
+    pub rank_per_scenario: bool,
     /// Episodes are cut (and count as failed) after this many steps.
     pub step_limit: u64,
     /// Check the current heads on held-out seeds every this many generations (and after the last).
@@ -145,6 +148,7 @@ impl Default for EvolutionConfig {
             learning_rate: 0.01,
             failure_ratio: 12.0,
             failure_progress_span: 0.0,
+            rank_per_scenario: false,
             step_limit: 900,
             check_every: 5,
             check_rounds: 4,

@@ -202,6 +202,17 @@ pub fn fitness(
     scoring: Scoring,
     seed_base: u64,
 ) -> Result<Fitness, EnvError> {
+    Ok(fitness_by_scenario(actor, scenarios, scoring, seed_base)?.0)
+}
+
+/// [`fitness`], with each scenario's mean score beside it (in the order of `scenarios`).
+pub fn fitness_by_scenario(
+    actor: &MultiTaskMlp,
+    scenarios: &[(Scenario, usize)],
+    scoring: Scoring,
+    seed_base: u64,
+) -> Result<(Fitness, Vec<f64>), EnvError> {
+    let mut per_scenario = Vec::with_capacity(scenarios.len());
     let mut total = 0.0;
     let mut episodes = 0usize;
     let mut wins = 0usize;
@@ -236,17 +247,20 @@ pub fn fitness(
                 })
             })
             .collect::<Result<Vec<Scored>, EnvError>>()?;
-        for e in scored {
+        let mut scenario_total = 0.0;
+        for e in &scored {
             episodes += 1;
             total += e.score;
+            scenario_total += e.score;
             if e.success {
                 wins += 1;
                 win_ratio += e.ratio;
             }
         }
+        per_scenario.push(scenario_total / scored.len().max(1) as f64);
     }
     let n = episodes.max(1) as f64;
-    Ok(Fitness {
+    let fitness = Fitness {
         fitness: -total / n,
         success_rate: wins as f64 / n,
         time_ratio: if wins > 0 {
@@ -255,7 +269,8 @@ pub fn fitness(
             f64::NAN
         },
         episodes,
-    })
+    };
+    Ok((fitness, per_scenario))
 }
 
 /// Tunes `task`'s heads of `actor` as `config` says; `seed` fixes the noise and the episodes.
@@ -298,10 +313,11 @@ pub fn evolve_task(
             .map(|_| (0..dim).map(|_| rng.sample(StandardNormal)).collect())
             .collect();
         let seed_base = TRAIN_SEED_BASE + 1000 * generation as u64 + 100_000 * t as u64;
-        let scores = noise
+        // Per pair: the overall fitness and each scenario's mean score, of + and of -.
+        let results = noise
             .par_iter()
             .map(|eps| {
-                let mut pair = [0.0; 2];
+                let mut pair = [(0.0, Vec::new()), (0.0, Vec::new())];
                 for (slot, sign) in [(0, 1.0f32), (1, -1.0)] {
                     let mut a = current.clone();
                     let p: Vec<f32> = theta
@@ -310,12 +326,31 @@ pub fn evolve_task(
                         .map(|(x, z)| x + sign * sigma * z)
                         .collect();
                     set_head_parameters(&mut a, t, &p);
-                    pair[slot] = fitness(&a, &train, Scoring::of(config), seed_base)?.fitness;
+                    let (f, by) = fitness_by_scenario(&a, &train, Scoring::of(config), seed_base)?;
+                    pair[slot] = (f.fitness, by);
                 }
                 Ok(pair)
             })
-            .collect::<Result<Vec<[f64; 2]>, EnvError>>()?;
-        let weights = centred_rank_differences(&scores);
+            .collect::<Result<Vec<_>, EnvError>>()?;
+        let scores: Vec<[f64; 2]> = results.iter().map(|p| [p[0].0, p[1].0]).collect();
+        let weights = if config.rank_per_scenario {
+            // Each scenario ranks the pairs on its own (minus its mean score: higher is better)
+            // and the rank differences are averaged, weighted by its episodes: a scenario whose
+            // scores span 12 lower bounds cannot drown one whose span is a tenth of one.
+            let total: usize = train.iter().map(|(_, n)| n).sum();
+            let mut w = vec![0f32; results.len()];
+            for (k, (_, episodes)) in train.iter().enumerate() {
+                let of_k: Vec<[f64; 2]> =
+                    results.iter().map(|p| [-p[0].1[k], -p[1].1[k]]).collect();
+                let share = *episodes as f32 / total.max(1) as f32;
+                for (wi, d) in w.iter_mut().zip(tied_centred_rank_differences(&of_k)) {
+                    *wi += share * d;
+                }
+            }
+            w
+        } else {
+            centred_rank_differences(&scores)
+        };
         let scale = 1.0 / (config.population as f32 * sigma);
         let mut grad = vec![0f32; dim];
         for (w, eps) in weights.iter().zip(&noise) {
@@ -357,6 +392,35 @@ pub fn evolve_task(
         start_check,
         best_check: best.0,
     })
+}
+
+/// As [`centred_rank_differences`], with tied scores sharing their mean rank, so that a scenario
+/// where every actor scores alike (all fail, or all finish on the same step) adds nothing.
+pub fn tied_centred_rank_differences(scores: &[[f64; 2]]) -> Vec<f32> {
+    let n = 2 * scores.len();
+    let mut order: Vec<(f64, usize)> = scores
+        .iter()
+        .enumerate()
+        .flat_map(|(i, p)| [(p[0], 2 * i), (p[1], 2 * i + 1)])
+        .collect();
+    order.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let mut rank = vec![0f32; n];
+    let denominator = (n.max(2) - 1) as f32;
+    let mut start = 0;
+    while start < n {
+        let mut end = start + 1;
+        while end < n && order[end].0 == order[start].0 {
+            end += 1;
+        }
+        let mean = (start + end - 1) as f32 / 2.0;
+        for &(_, i) in &order[start..end] {
+            rank[i] = mean / denominator - 0.5;
+        }
+        start = end;
+    }
+    (0..scores.len())
+        .map(|i| rank[2 * i] - rank[2 * i + 1])
+        .collect()
 }
 
 /// Per antithetic pair, `rank(+) - rank(-)` with ranks centred in `[-0.5, 0.5]`: the fitness
@@ -432,6 +496,20 @@ mod tests {
         // Scale-free: multiplying the scores changes nothing.
         let v = centred_rank_differences(&[[-10.0, -50.0], [-40.0, -20.0]]);
         assert_eq!(w, v);
+    }
+
+    #[test]
+    fn tied_ranks_add_nothing() {
+        assert_eq!(
+            tied_centred_rank_differences(&[[-12.0, -12.0], [-12.0, -12.0]]),
+            vec![0.0, 0.0]
+        );
+        let w = tied_centred_rank_differences(&[[-1.0, -5.0], [-4.0, -2.0]]);
+        assert_eq!(w, centred_rank_differences(&[[-1.0, -5.0], [-4.0, -2.0]]));
+        // One pair tied with itself, the other decided.
+        let w = tied_centred_rank_differences(&[[-3.0, -3.0], [-1.0, -5.0]]);
+        assert_eq!(w[0], 0.0);
+        assert!(w[1] > 0.0);
     }
 
     #[test]
