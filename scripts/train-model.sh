@@ -1,0 +1,16 @@
+#!/usr/bin/env bash
+# Trains the shipped model from nothing, as models/MODEL.md records it: stage 1 (warm start,
+# MTDDPG, first evolution stage; about 32 min on the 2-core development machine), stage 2 (the
+# second evolution stage; about 18 min), then the export (quantization-aware fine-tuning and
+# int8/int16 quantization; about 20 s). Seeded: the same commands give the same model file.
+#   ./scripts/train-model.sh            # -> models/mtddpg-v1.skym, trainer/shipped/mtddpg-v1.actor.safetensors
+set -euo pipefail
+cd "$(dirname "$0")/.."
+export CARGO_TARGET_DIR="${CARGO_TARGET_DIR:-target-trainer}"
+cargo build --release --locked -p skyherd-trainer
+trainer="$CARGO_TARGET_DIR/release/skyherd-trainer"
+"$trainer" train --config trainer/configs/mtddpg-v1.toml
+"$trainer" evolve --config trainer/configs/mtddpg-v1-refine.toml \
+  --checkpoint runs/mtddpg-v1/evolved.safetensors
+"$trainer" export --checkpoint runs/mtddpg-v1-refine/evolved.safetensors \
+  --out models/mtddpg-v1.skym --actor-out trainer/shipped/mtddpg-v1.actor.safetensors
