@@ -398,11 +398,7 @@ pub fn evolve_task(
 /// where every actor scores alike (all fail, or all finish on the same step) adds nothing.
 pub fn tied_centred_rank_differences(scores: &[[f64; 2]]) -> Vec<f32> {
     let n = 2 * scores.len();
-    let mut order: Vec<(f64, usize)> = scores
-        .iter()
-        .enumerate()
-        .flat_map(|(i, p)| [(p[0], 2 * i), (p[1], 2 * i + 1)])
-        .collect();
+    let mut order = both_sides(scores);
     order.sort_by(|a, b| a.0.total_cmp(&b.0));
     let mut rank = vec![0f32; n];
     let denominator = (n.max(2) - 1) as f32;
@@ -418,29 +414,35 @@ pub fn tied_centred_rank_differences(scores: &[[f64; 2]]) -> Vec<f32> {
         }
         start = end;
     }
-    (0..scores.len())
-        .map(|i| rank[2 * i] - rank[2 * i + 1])
+    pair_differences(&rank)
+}
+
+/// Every score with its slot: `+` of pair `i` at `2 i`, `-` at `2 i + 1`.
+fn both_sides(scores: &[[f64; 2]]) -> Vec<(f64, usize)> {
+    scores
+        .iter()
+        .enumerate()
+        .flat_map(|(i, p)| [(p[0], 2 * i), (p[1], 2 * i + 1)])
         .collect()
+}
+
+/// `rank(+) - rank(-)` of every pair, from the ranks laid out as [`both_sides`] numbers them.
+fn pair_differences(rank: &[f32]) -> Vec<f32> {
+    rank.chunks_exact(2).map(|r| r[0] - r[1]).collect()
 }
 
 /// Per antithetic pair, `rank(+) - rank(-)` with ranks centred in `[-0.5, 0.5]`: the fitness
 /// shaping that makes the step blind to the scale of the scores (and to outliers).
 pub fn centred_rank_differences(scores: &[[f64; 2]]) -> Vec<f32> {
     let n = 2 * scores.len();
-    let mut order: Vec<(f64, usize)> = scores
-        .iter()
-        .enumerate()
-        .flat_map(|(i, p)| [(p[0], 2 * i), (p[1], 2 * i + 1)])
-        .collect();
+    let mut order = both_sides(scores);
     order.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
     let mut rank = vec![0f32; n];
     let denominator = (n.max(2) - 1) as f32;
     for (r, &(_, i)) in order.iter().enumerate() {
         rank[i] = r as f32 / denominator - 0.5;
     }
-    (0..scores.len())
-        .map(|i| rank[2 * i] - rank[2 * i + 1])
-        .collect()
+    pair_differences(&rank)
 }
 
 /// One Adam step uphill (step `t` from 1, default betas).
