@@ -262,7 +262,6 @@ impl PolicyFactory for ModelPolicy {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::policy::Policy as _;
     use crate::{Env, HerderCount, Scenario};
 
     /// "Full speed forward, up" whatever the observation.
