@@ -20,6 +20,12 @@
 //! * [`Method::FarthestTargets`]: the best simple rule of DESIGN §2: the M targets farthest from
 //!   the goal are handed out, farthest first, each to the nearest herder not yet given one, and
 //!   each herder sits behind its target on the target-goal line.
+//! * [`Method::Enclose`]: Strömbom whose driving arc wraps round the flock as the flock nears the
+//!   goal (120 degrees from 2 goal radii out, a full ring at the goal), the ring's centre shifted
+//!   goalwards of the centroid so that the herders behind press harder than those in front, and
+//!   the ring herders going round the flock, not through it, to their slots. The closed ring
+//!   squeezes a flock far below its resting size (256 targets from ~58 m to ~30 m radius, 1024
+//!   to the 45 m goal), which no other rule here does: it is the teacher for large flocks.
 //!
 //! "Push from behind" means: fly to the point `stand-off` behind the target on the line from the
 //! goal through it; a herder on the goal side first swings round the target at 2 stand-offs, so
@@ -35,6 +41,12 @@ use crate::world::{World, dist2};
 pub const STANDOFF_R: f64 = 8.0 / 45.0;
 /// How far inside the walls a herder keeps, in goal radii (1 m at R = 45 m).
 pub const WALL_MARGIN_R: f64 = 1.0 / 45.0;
+/// Strömbom's driving arc behind the flock, radians (120 degrees).
+pub const STROMBOM_ARC: f64 = 120.0 * std::f64::consts::PI / 180.0;
+/// [`Method::Enclose`] starts wrapping its arc round the flock at this centroid distance, goal radii.
+pub const ENCLOSE_WRAP_R: f64 = 2.0;
+/// [`Method::Enclose`] shifts its closed ring this far goalwards of the centroid, in goal radii.
+pub const ENCLOSE_SHIFT_R: f64 = 0.8;
 /// Herding altitude, in goal radii (2 m at R = 45 m).
 pub const ALTITUDE_R: f64 = 2.0 / 45.0;
 
@@ -49,15 +61,18 @@ pub enum Method {
     Lama,
     /// DESIGN §2's best simple rule: each herder a different far target.
     FarthestTargets,
+    /// Strömbom to the goal, then a ring around it: each herder squeezes its own sector.
+    Enclose,
 }
 
 impl Method {
     /// Every baseline, in report order.
-    pub const ALL: [Method; 4] = [
+    pub const ALL: [Method; 5] = [
         Method::Strombom,
         Method::ControlTutor,
         Method::Lama,
         Method::FarthestTargets,
+        Method::Enclose,
     ];
 
     /// The name used on the command line and in reports.
@@ -67,6 +82,19 @@ impl Method {
             Method::ControlTutor => "ctrl",
             Method::Lama => "lama",
             Method::FarthestTargets => "farthest",
+            Method::Enclose => "enclose",
+        }
+    }
+}
+
+impl Method {
+    /// How far inside the walls the rule keeps its herders, in goal radii. [`Method::Enclose`]
+    /// keeps 4 m (at R = 45 m): its ring reaches the walls when the flock does, and the
+    /// actuation noise would carry a herder over a 1 m margin.
+    pub fn wall_margin_r(self) -> f64 {
+        match self {
+            Method::Enclose => 4.0 * WALL_MARGIN_R,
+            _ => WALL_MARGIN_R,
         }
     }
 }
@@ -115,6 +143,9 @@ pub struct RulePolicy {
     taken: Vec<bool>,
     share_best: Vec<Option<(f64, usize)>>,
     by_angle: Vec<(f64, usize)>,
+    /// Per herder, [`Method::Enclose`] only: the flock disc (centre, radius) to go round, not
+    /// through, on the way to its slot.
+    orbit: Vec<Option<([f64; 2], f64)>>,
 }
 
 impl RulePolicy {
@@ -130,6 +161,7 @@ impl RulePolicy {
             taken: Vec::new(),
             share_best: Vec::new(),
             by_angle: Vec::new(),
+            orbit: Vec::new(),
         }
     }
 
@@ -144,6 +176,8 @@ impl RulePolicy {
         self.goals.resize(m, w.goal.center);
         self.pushed.clear();
         self.pushed.resize(m, None);
+        self.orbit.clear();
+        self.orbit.resize(m, None);
         let g = w.goal.center;
         let r = w.goal.radius;
         let standoff = STANDOFF_R * r;
@@ -210,61 +244,85 @@ impl RulePolicy {
                     }
                 }
             }
-            Method::Strombom => {
-                let (centroid, radius) = centroid_radius(w);
-                let n = w.targets.len() as f64;
-                let f_n = 0.22 * r * n.powf(0.37);
-                // Stragglers: every target beyond f(N) from the centroid, farthest first.
-                self.dist.clear();
-                self.dist
-                    .extend(w.targets.iter().map(|&t| dist2(t, centroid).sqrt()));
-                self.order.clear();
-                self.order
-                    .extend((0..w.targets.len() as u32).filter(|&j| self.dist[j as usize] > f_n));
-                let k = m.min(self.order.len());
-                let dist = &self.dist;
-                let by_far = |a: &u32, b: &u32| dist[*b as usize].total_cmp(&dist[*a as usize]);
-                if k > 0 && k < self.order.len() {
-                    self.order.select_nth_unstable_by(k - 1, by_far);
+            Method::Enclose => {
+                // The driving arc wraps round the flock as it nears the goal until it is a ring
+                // that squeezes it; the ring's centre sits a little goalwards of the centroid, so
+                // the herders behind press harder than those in front and the flock keeps going.
+                let d = dist2(w.flock_centroid(), g).sqrt() / r;
+                let closing = ((ENCLOSE_WRAP_R - d) / ENCLOSE_WRAP_R).clamp(0.0, 1.0);
+                let arc = STROMBOM_ARC + closing * (std::f64::consts::TAU - STROMBOM_ARC);
+                let shift = ENCLOSE_SHIFT_R * r * closing * d.min(1.0);
+                self.plan_strombom(w, arc, shift)
+            }
+            Method::Strombom => self.plan_strombom(w, STROMBOM_ARC, 0.0),
+        }
+    }
+
+    /// Strömbom: collect the stragglers beyond `f(N)`, drive with the rest on an arc.
+    fn plan_strombom(&mut self, w: &World, arc: f64, shift: f64) {
+        let m = w.herders.len();
+        let g = w.goal.center;
+        let r = w.goal.radius;
+        let standoff = STANDOFF_R * r;
+        let (centroid, radius) = centroid_radius(w);
+        let n = w.targets.len() as f64;
+        let f_n = 0.22 * r * n.powf(0.37);
+        // Stragglers: every target beyond f(N) from the centroid, farthest first.
+        self.dist.clear();
+        self.dist
+            .extend(w.targets.iter().map(|&t| dist2(t, centroid).sqrt()));
+        self.order.clear();
+        self.order
+            .extend((0..w.targets.len() as u32).filter(|&j| self.dist[j as usize] > f_n));
+        let k = m.min(self.order.len());
+        let dist = &self.dist;
+        let by_far = |a: &u32, b: &u32| dist[*b as usize].total_cmp(&dist[*a as usize]);
+        if k > 0 && k < self.order.len() {
+            self.order.select_nth_unstable_by(k - 1, by_far);
+        }
+        self.order[..k].sort_unstable_by(by_far);
+        self.taken.clear();
+        self.taken.resize(m, false);
+        for rank in 0..k {
+            let t = w.targets[self.order[rank] as usize];
+            if let Some(i) = nearest_free(&w.herders, &self.taken, t) {
+                self.taken[i] = true;
+                // Collect: push the straggler towards the flock centroid.
+                self.push(i, t, centroid, standoff);
+            }
+        }
+        // Drive: the rest spread on an arc behind the flock, in the order of their
+        // bearing around it so that they do not cross.
+        let back = unit([centroid[0] - g[0], centroid[1] - g[1]]);
+        let base = back[1].atan2(back[0]);
+        let by_angle = &mut self.by_angle;
+        by_angle.clear();
+        by_angle.extend((0..m).filter(|&i| !self.taken[i]).map(|i| {
+            let h = w.herders[i];
+            let a = (h[1] - centroid[1]).atan2(h[0] - centroid[0]) - base;
+            (wrap_angle(a), i)
+        }));
+        let d = by_angle.len();
+        if d > 0 {
+            by_angle.sort_by(|a, b| a.0.total_cmp(&b.0));
+            let ring = radius + standoff;
+            // Evenly over the arc, ends included, but never closer than a full ring's spacing
+            // (a 360-degree arc must not put its two ends on one spot).
+            let spacing = if d == 1 {
+                0.0
+            } else {
+                (arc / (d - 1) as f64).min(std::f64::consts::TAU / d as f64)
+            };
+            for (slot, &(_, i)) in self.by_angle.iter().enumerate() {
+                let a = base + (slot as f64 - 0.5 * (d - 1) as f64) * spacing;
+                if self.method == Method::Enclose {
+                    self.orbit[i] = Some((centroid, radius + 0.5 * standoff));
                 }
-                self.order[..k].sort_unstable_by(by_far);
-                self.taken.clear();
-                self.taken.resize(m, false);
-                for rank in 0..k {
-                    let t = w.targets[self.order[rank] as usize];
-                    if let Some(i) = nearest_free(&w.herders, &self.taken, t) {
-                        self.taken[i] = true;
-                        // Collect: push the straggler towards the flock centroid.
-                        self.push(i, t, centroid, standoff);
-                    }
-                }
-                // Drive: the rest spread on an arc behind the flock, in the order of their
-                // bearing around it so that they do not cross.
-                let back = unit([centroid[0] - g[0], centroid[1] - g[1]]);
-                let base = back[1].atan2(back[0]);
-                let by_angle = &mut self.by_angle;
-                by_angle.clear();
-                by_angle.extend((0..m).filter(|&i| !self.taken[i]).map(|i| {
-                    let h = w.herders[i];
-                    let a = (h[1] - centroid[1]).atan2(h[0] - centroid[0]) - base;
-                    (wrap_angle(a), i)
-                }));
-                let d = by_angle.len();
-                if d > 0 {
-                    by_angle.sort_by(|a, b| a.0.total_cmp(&b.0));
-                    let arc = 120f64.to_radians();
-                    let ring = radius + standoff;
-                    for (slot, &(_, i)) in self.by_angle.iter().enumerate() {
-                        let frac = if d == 1 {
-                            0.0
-                        } else {
-                            slot as f64 / (d - 1) as f64 - 0.5
-                        };
-                        let a = base + frac * arc;
-                        self.goals[i] =
-                            [centroid[0] + ring * a.cos(), centroid[1] + ring * a.sin()];
-                    }
-                }
+                self.goals[i] =
+                    [
+                        centroid[0] + ring * a.cos() - shift * back[0],
+                        centroid[1] + ring * a.sin() - shift * back[1],
+                    ];
             }
         }
     }
@@ -350,6 +408,44 @@ fn behind(p: [f64; 2], from: [f64; 2], dist: f64) -> [f64; 2] {
     [p[0] + u[0] * dist, p[1] + u[1] * dist]
 }
 
+/// Where a herder at `h` bound for `point` heads now so as not to cross the disc
+/// (`centre`, `keep_out`): straight there when the segment misses the disc, else round the disc
+/// at `point`'s distance from its centre, at most [`ORBIT_STEP`] of bearing ahead.
+fn round_the_flock(h: [f64; 2], point: [f64; 2], centre: [f64; 2], keep_out: f64) -> [f64; 2] {
+    if segment_distance(centre, h, point) >= keep_out {
+        return point;
+    }
+    let (ah, _) = polar(h, centre);
+    let (ap, rp) = polar(point, centre);
+    let delta = wrap_angle(ap - ah);
+    if delta.abs() <= ORBIT_STEP {
+        return point;
+    }
+    let a = ah + ORBIT_STEP * delta.signum();
+    let rho = rp.max(keep_out);
+    [centre[0] + rho * a.cos(), centre[1] + rho * a.sin()]
+}
+
+/// Bearing step of [`round_the_flock`], radians (about 17 degrees).
+pub const ORBIT_STEP: f64 = 0.3;
+
+fn polar(p: [f64; 2], centre: [f64; 2]) -> (f64, f64) {
+    let v = [p[0] - centre[0], p[1] - centre[1]];
+    (v[1].atan2(v[0]), (v[0] * v[0] + v[1] * v[1]).sqrt())
+}
+
+/// Distance from `p` to the segment `a`-`b`.
+fn segment_distance(p: [f64; 2], a: [f64; 2], b: [f64; 2]) -> f64 {
+    let ab = [b[0] - a[0], b[1] - a[1]];
+    let len2 = ab[0] * ab[0] + ab[1] * ab[1];
+    let t = if len2 > 1e-12 {
+        (((p[0] - a[0]) * ab[0] + (p[1] - a[1]) * ab[1]) / len2).clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
+    dist2(p, [a[0] + t * ab[0], a[1] + t * ab[1]]).sqrt()
+}
+
 /// Velocity that reaches `point` at `altitude` this step if it can, else flies at `vmax`.
 pub fn steer(herder: [f64; 3], point: [f64; 2], altitude: f64, vmax: f64, dt: f64) -> [f64; 3] {
     let v = [
@@ -403,8 +499,11 @@ impl Policy for RulePolicy {
         if let Some(target) = self.pushed[herder] {
             point = approach([h[0], h[1]], target, point, STANDOFF_R * r);
         }
+        if let Some((centre, keep_out)) = self.orbit.get(herder).copied().flatten() {
+            point = round_the_flock([h[0], h[1]], point, centre, keep_out);
+        }
         // Never chase a point outside the arena: leaving it ends the episode.
-        let margin = WALL_MARGIN_R * r;
+        let margin = self.method.wall_margin_r() * r;
         point[0] = point[0].clamp(
             margin.min(world.area.width / 2.0),
             (world.area.width - margin).max(world.area.width / 2.0),
