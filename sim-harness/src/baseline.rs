@@ -516,3 +516,101 @@ impl Policy for RulePolicy {
         steer(h, point, altitude, world.limits.herder, world.dt)
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::scenario::HerderCount;
+    use crate::{Env, Scenario, run_episode};
+
+    #[test]
+    fn round_the_flock_goes_straight_when_clear_and_round_when_not() {
+        let centre = [0.0, 0.0];
+        // The segment misses the disc: straight to the point.
+        assert_eq!(
+            round_the_flock([100.0, 50.0], [-100.0, 50.0], centre, 30.0),
+            [-100.0, 50.0]
+        );
+        // Straight through the middle: a step round the disc instead, outside it.
+        let p = round_the_flock([100.0, 0.0], [-100.0, 0.0], centre, 30.0);
+        let (a, rho) = polar(p, centre);
+        assert!((a.abs() - ORBIT_STEP).abs() < 1e-9, "bearing {a}");
+        assert!(rho >= 30.0 && rho <= 100.0 + 1e-9, "radius {rho}");
+        // Almost there (within one bearing step): straight on.
+        let near = [30.0 * 0.2f64.cos(), 30.0 * 0.2f64.sin()];
+        assert_eq!(round_the_flock([40.0, 0.0], near, centre, 35.0), near);
+    }
+
+    #[test]
+    fn segment_distance_is_to_the_nearest_point_of_the_segment() {
+        assert!((segment_distance([0.0, 5.0], [-1.0, 0.0], [1.0, 0.0]) - 5.0).abs() < 1e-12);
+        assert!((segment_distance([4.0, 3.0], [-1.0, 0.0], [1.0, 0.0]) - 4.242_640_687).abs() < 1e-6);
+        assert!((segment_distance([3.0, 4.0], [0.0, 0.0], [0.0, 0.0]) - 5.0).abs() < 1e-12);
+    }
+
+    /// The ring closes round a flock sitting on the goal: the drive slots are evenly spread
+    /// round it and no two herders are sent to one spot.
+    #[test]
+    fn at_the_goal_the_enclose_slots_are_a_full_even_ring() {
+        let mut env = Env::new(Scenario {
+            targets: 64,
+            herders: HerderCount::Fixed(8),
+            ..Scenario::paper_drive().without_noise()
+        })
+        .unwrap();
+        let mut world = env.reset(3).clone();
+        let g = world.goal.center;
+        // The flock straddles the goal's edge with its centroid on the centre.
+        for (j, t) in world.targets.iter_mut().enumerate() {
+            let a = j as f64 * 0.618 * std::f64::consts::TAU;
+            let rho = 40.0 * ((j % 8) as f64 + 1.0) / 8.0; // inside f(64) = 46 m: no stragglers
+            *t = [g[0] + rho * a.cos(), g[1] + rho * a.sin()];
+        }
+        let c = world.flock_centroid();
+        for t in world.targets.iter_mut() {
+            *t = [t[0] - c[0] + g[0], t[1] - c[1] + g[1]];
+        }
+        let mut rule = RulePolicy::new(Method::Enclose);
+        rule.plan(&world);
+        let mut bearings: Vec<f64> = rule
+            .goals
+            .iter()
+            .zip(&rule.pushed)
+            .filter(|(_, pushed)| pushed.is_none())
+            .map(|(p, _)| polar(*p, g).0)
+            .collect();
+        assert!(bearings.len() >= 6, "{} drive slots", bearings.len());
+        bearings.sort_by(f64::total_cmp);
+        let d = bearings.len();
+        for k in 0..d {
+            let gap = (bearings[(k + 1) % d] - bearings[k]).rem_euclid(std::f64::consts::TAU);
+            let even = std::f64::consts::TAU / d as f64;
+            assert!((gap - even).abs() < 1e-6, "gap {gap} vs {even}");
+        }
+    }
+
+    /// The reason the rule exists: with the adaptive 16 herders, 256 targets are driven into the
+    /// goal, where the plain Strömbom rule (its driving arc never closes) fails.
+    #[test]
+    fn enclose_herds_256_targets_that_strombom_does_not() {
+        let scenario = Scenario {
+            targets: 256,
+            herders: HerderCount::Adaptive,
+            ..Scenario::paper_drive()
+        };
+        let mut env = Env::new(scenario).unwrap();
+        let mut wins = |method: Method| {
+            (0..3)
+                .filter(|&seed| {
+                    let mut policy = RulePolicy::new(method);
+                    run_episode(&mut env, &mut policy, seed, |_, _| {})
+                        .unwrap()
+                        .success
+                })
+                .count()
+        };
+        let (enclose, strombom) = (wins(Method::Enclose), wins(Method::Strombom));
+        assert!(enclose >= 2, "enclose herded {enclose} of 3");
+        assert!(strombom < enclose, "strombom {strombom}, enclose {enclose}");
+    }
+}

@@ -39,6 +39,7 @@
 
 pub mod checkpoint;
 pub mod config;
+pub mod distill;
 pub mod ddpg;
 pub mod eval;
 pub mod evolve;

@@ -18,6 +18,7 @@ use skyherd_onboard::actor::Actor;
 use skyherd_sim::baseline::{Method, RulePolicy};
 use skyherd_trainer::checkpoint;
 use skyherd_trainer::config::TrainConfig;
+use skyherd_trainer::distill::{DistillConfig, distill};
 use skyherd_trainer::eval::{EvalScenario, evaluate_flat, markdown_table};
 use skyherd_trainer::export::{calibration_scenarios, export, parity, record_observations};
 use skyherd_trainer::policy::ActorPolicy;
@@ -55,10 +56,27 @@ enum Command {
         #[arg(long)]
         checkpoint: Option<PathBuf>,
     },
+    /// Distil a rule into a float actor where the rule herds better (`skyherd_trainer::distill`:
+    /// DAgger on the config's teach scenarios, anchored to the actor's own actions on its keep
+    /// scenarios), writing the student as an actor file.
+    Distill {
+        /// The distillation TOML config.
+        #[arg(long)]
+        config: PathBuf,
+        /// The actor to start from (an actor file or a checkpoint).
+        #[arg(long)]
+        actor: PathBuf,
+        /// The student actor file to write.
+        #[arg(long)]
+        out: PathBuf,
+        /// Worker threads.
+        #[arg(long, default_value_t = 2)]
+        threads: usize,
+    },
     /// Quantize a checkpoint's actor into a quantized model file and check it against the float
     /// actor.
     Export {
-        /// A checkpoint (`best.safetensors` or `last.safetensors`).
+        /// A checkpoint (`best.safetensors` or `last.safetensors`) or an actor file.
         #[arg(long)]
         checkpoint: PathBuf,
         /// The model file to write.
@@ -243,6 +261,51 @@ fn main() -> Result<()> {
             }
             print_evolution(&outcome);
         }
+        Command::Distill {
+            config,
+            actor,
+            out,
+            threads,
+        } => {
+            let text = std::fs::read_to_string(&config)
+                .with_context(|| format!("reading {}", config.display()))?;
+            let config: DistillConfig =
+                toml::from_str(&text).with_context(|| format!("parsing {}", config.display()))?;
+            let start = checkpoint::load_actor(&actor)
+                .with_context(|| format!("distilling from {}", actor.display()))?;
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()?;
+            let t0 = std::time::Instant::now();
+            let outcome = pool.install(|| {
+                distill(&start, &config, |r| {
+                    let check = r.check.map_or(String::new(), |c| {
+                        format!(
+                            ", check {:.3} (success {:.0}%, time {:.2}x)",
+                            c.fitness,
+                            100.0 * c.success_rate,
+                            c.time_ratio
+                        )
+                    });
+                    println!(
+                        "round {}: {} teach + {} keep samples, teach success {:.0}%, keep success {:.0}%, loss {:.5}{check} ({:.0} s)",
+                        r.round,
+                        r.teach_samples,
+                        r.keep_samples,
+                        100.0 * r.teach_success,
+                        100.0 * r.keep_success,
+                        r.loss,
+                        t0.elapsed().as_secs_f64()
+                    )
+                })
+            })?;
+            println!("kept round {}", outcome.best_round);
+            if let Some(dir) = out.parent() {
+                std::fs::create_dir_all(dir)?;
+            }
+            checkpoint::save_actor(&out, &outcome.actor)?;
+            println!("wrote {}", out.display());
+        }
         Command::Export {
             checkpoint: path,
             out,
@@ -251,8 +314,8 @@ fn main() -> Result<()> {
             qat_steps,
             actor_out,
         } => {
-            let c = checkpoint::load(&path)?;
-            let actor = &c.agent.actor;
+            let actor = &checkpoint::load_actor(&path)
+                .with_context(|| format!("exporting {}", path.display()))?;
             // Calibration and parity use different episodes (seeds) of the same scenarios.
             let scenarios = calibration_scenarios();
             let calibration = record_observations(
