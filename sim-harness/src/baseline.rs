@@ -318,11 +318,10 @@ impl RulePolicy {
                 if self.method == Method::Enclose {
                     self.orbit[i] = Some((centroid, radius + 0.5 * standoff));
                 }
-                self.goals[i] =
-                    [
-                        centroid[0] + ring * a.cos() - shift * back[0],
-                        centroid[1] + ring * a.sin() - shift * back[1],
-                    ];
+                self.goals[i] = [
+                    centroid[0] + ring * a.cos() - shift * back[0],
+                    centroid[1] + ring * a.sin() - shift * back[1],
+                ];
             }
         }
     }
@@ -544,7 +543,9 @@ mod tests {
     #[test]
     fn segment_distance_is_to_the_nearest_point_of_the_segment() {
         assert!((segment_distance([0.0, 5.0], [-1.0, 0.0], [1.0, 0.0]) - 5.0).abs() < 1e-12);
-        assert!((segment_distance([4.0, 3.0], [-1.0, 0.0], [1.0, 0.0]) - 4.242_640_687).abs() < 1e-6);
+        assert!(
+            (segment_distance([4.0, 3.0], [-1.0, 0.0], [1.0, 0.0]) - 4.242_640_687).abs() < 1e-6
+        );
         assert!((segment_distance([3.0, 4.0], [0.0, 0.0], [0.0, 0.0]) - 5.0).abs() < 1e-12);
     }
 

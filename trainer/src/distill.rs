@@ -16,7 +16,7 @@
 //! ```
 //! use rand::SeedableRng;
 //! use skyherd_trainer::config::EvolutionScenario;
-//! use skyherd_trainer::distill::{DistillConfig, distill};
+//! use skyherd_trainer::distill::{DistillConfig, TeachScenario, distill};
 //! use skyherd_trainer::network::MultiTaskMlp;
 //! use skyherd_trainer::nn::Activation;
 //!
@@ -26,7 +26,7 @@
 //!     rounds: 2,
 //!     updates_per_round: 20,
 //!     step_limit: 40,
-//!     teach: vec![EvolutionScenario::paper("driving", 8, 2, 1)],
+//!     teach: vec![TeachScenario::paper("driving", 8, 2, 1)],
 //!     keep: vec![EvolutionScenario::paper("collecting", 4, 1, 1)],
 //!     ..DistillConfig::default()
 //! };
@@ -74,12 +74,19 @@ pub struct DistillConfig {
     pub learning_rate: f32,
     /// Minibatch size per update, split evenly over the non-empty (task, teach/keep) pools.
     pub batch_size: usize,
+    /// Share of each minibatch drawn from the keep samples (the rest from the teach samples),
+    /// split evenly over the tasks.
+    pub keep_share: f32,
     /// Episode step limit of the roll-outs.
     pub step_limit: u64,
     /// Every `stride`-th step of a roll-out is labelled (consecutive steps are near copies).
     pub stride: u64,
-    /// Where the teacher's actions are the labels (episodes per round each).
-    pub teach: Vec<EvolutionScenario>,
+    /// Weight averaging: after every update the student's average moves this fraction of the
+    /// way to the trained weights (Polyak averaging), and the average is what flies, is
+    /// checked and is returned. 1 turns it off (the trained weights themselves).
+    pub average_rate: f32,
+    /// Where a teacher's actions are the labels (episodes per round each).
+    pub teach: Vec<TeachScenario>,
     /// Where the starting actor's actions are the labels (episodes per round each).
     pub keep: Vec<EvolutionScenario>,
     /// Held-out check after every round (episodes each): the student with the best check is
@@ -101,13 +108,59 @@ impl Default for DistillConfig {
             updates_per_round: 5_000,
             learning_rate: 3e-4,
             batch_size: 256,
+            keep_share: 0.5,
             step_limit: 1_500,
             stride: 4,
+            average_rate: 1.0,
             teach: Vec::new(),
             keep: Vec::new(),
             check: Vec::new(),
             check_seed_base: 8_000_000_000,
             failure_ratio: 12.0,
+        }
+    }
+}
+
+/// A teach scenario: an evolution-style scenario and, optionally, its own teacher.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TeachScenario {
+    /// `driving` or `collecting`.
+    pub task: String,
+    /// Targets N.
+    pub targets: usize,
+    /// Herders M; 0 for the adaptive count.
+    pub herders: usize,
+    /// The indoor room's layout at paper scale.
+    #[serde(default)]
+    pub room: bool,
+    /// Episodes per round.
+    pub episodes: usize,
+    /// This scenario's teacher (a baseline name) instead of the config's `teacher`.
+    #[serde(default)]
+    pub teacher: Option<String>,
+}
+
+impl TeachScenario {
+    /// A paper-layout teach scenario with the config's teacher.
+    pub fn paper(task: &str, targets: usize, herders: usize, episodes: usize) -> Self {
+        TeachScenario {
+            task: task.to_owned(),
+            targets,
+            herders,
+            room: false,
+            episodes,
+            teacher: None,
+        }
+    }
+
+    fn scenario(&self) -> EvolutionScenario {
+        EvolutionScenario {
+            task: self.task.clone(),
+            targets: self.targets,
+            herders: self.herders,
+            room: self.room,
+            episodes: self.episodes,
         }
     }
 }
@@ -152,8 +205,10 @@ pub struct RoundReport {
     pub teach_success: f64,
     /// Success rate of this round's keep roll-outs.
     pub keep_success: f64,
-    /// Mean squared error of the last 100 updates' batches.
-    pub loss: f32,
+    /// Mean squared error on the teach samples of the last 100 updates' batches.
+    pub teach_loss: f32,
+    /// Mean squared error on the keep samples of the last 100 updates' batches.
+    pub keep_loss: f32,
     /// The student's held-out check after this round (`None` without check scenarios).
     pub check: Option<Fitness>,
 }
@@ -187,17 +242,17 @@ impl Pool {
     }
 }
 
-/// Who flies a roll-out.
-#[derive(Clone, Copy)]
-enum Pilot<'a> {
-    Teacher(Method),
-    Student(&'a MultiTaskMlp),
+/// One scenario of a round: what is simulated, how many episodes, and who labels them.
+struct Job {
+    scenario: Scenario,
+    episodes: usize,
+    /// The rule whose actions are the labels; `None`: the starting actor's.
+    teacher: Option<Method>,
 }
 
 /// Who labels what the pilot saw.
-#[derive(Clone, Copy)]
 enum Labeller<'a> {
-    Teacher(Method),
+    Rule(RulePolicy),
     Anchor(&'a MultiTaskMlp),
 }
 
@@ -205,24 +260,16 @@ enum Labeller<'a> {
 /// Returns the samples and whether the episode succeeded.
 fn roll_out(
     env: &mut Env,
-    pilot: Pilot<'_>,
-    labeller: Labeller<'_>,
+    pilot: &mut dyn Policy,
+    mut labeller: Labeller<'_>,
     seed: u64,
     stride: u64,
 ) -> Result<(Pool, bool), EnvError> {
     env.reset(seed);
     let mut pool = Pool::default();
-    let mut teacher = match labeller {
-        Labeller::Teacher(m) => Some(RulePolicy::new(m)),
-        Labeller::Anchor(_) => None,
-    };
-    let mut pilot_policy: Box<dyn Policy> = match pilot {
-        Pilot::Teacher(m) => Box::new(RulePolicy::new(m)),
-        Pilot::Student(actor) => Box::new(ActorPolicy::flying(actor)),
-    };
-    pilot_policy.reset(env.observation(), seed);
-    if let Some(t) = teacher.as_mut() {
-        t.reset(env.observation(), seed);
+    pilot.reset(env.observation(), seed);
+    if let Labeller::Rule(rule) = &mut labeller {
+        rule.reset(env.observation(), seed);
     }
     let mut buffers = EncoderBuffers::default();
     let mut features = [0.0f32; FEATURES];
@@ -242,16 +289,15 @@ fn roll_out(
                 let Ok(frame) = buffers.encode_at_altitude(h, height, &mut features) else {
                     continue;
                 };
-                let label = match (labeller, teacher.as_mut()) {
-                    (Labeller::Teacher(_), Some(t)) => {
-                        let v = t.act(world, h);
+                let label = match &mut labeller {
+                    Labeller::Rule(rule) => {
+                        let v = rule.act(world, h);
                         frame.world_to_action([v[0] as f32, v[1] as f32, v[2] as f32])
                     }
-                    (Labeller::Anchor(anchor), _) => {
+                    Labeller::Anchor(anchor) => {
                         let y = anchor.predict(world.task.index(), &features);
                         [y[0], y[1], y[2]]
                     }
-                    (Labeller::Teacher(_), None) => unreachable!("a teacher labeller has a rule"),
                 };
                 pool.obs.extend_from_slice(&features);
                 pool.actions.extend_from_slice(&label);
@@ -259,7 +305,7 @@ fn roll_out(
         }
         actions.clear();
         for h in 0..world.herders.len() {
-            actions.push(pilot_policy.act(world, h));
+            actions.push(pilot.act(world, h));
         }
         let out = env.step(&actions)?;
         if out.terminated || out.truncated {
@@ -268,26 +314,39 @@ fn roll_out(
     }
 }
 
-/// Rolls out every scenario's episodes of one round in parallel; returns the samples per task
-/// and the success rate.
+/// Rolls out every job's episodes of one round in parallel. `student` flies them all; without
+/// one (round 0) each job's labeller flies its own episodes. Returns the samples per task and
+/// the success rate.
 fn round_samples(
-    scenarios: &[(Task, Scenario, usize)],
-    pilot: Pilot<'_>,
-    labeller: Labeller<'_>,
+    jobs: &[Job],
+    student: Option<&MultiTaskMlp>,
+    anchor: &MultiTaskMlp,
     seed_base: u64,
     stride: u64,
 ) -> Result<([Pool; Task::COUNT], f64), DistillError> {
-    let jobs: Vec<(usize, u64)> = scenarios
+    let episodes: Vec<(usize, u64)> = jobs
         .iter()
         .enumerate()
-        .flat_map(|(k, (_, _, n))| (0..*n as u64).map(move |i| (k, seed_base + 1000 * k as u64 + i)))
+        .flat_map(|(k, job)| {
+            (0..job.episodes as u64).map(move |i| (k, seed_base + 1000 * k as u64 + i))
+        })
         .collect();
-    let results = jobs
+    let results = episodes
         .par_iter()
         .map(|&(k, seed)| {
-            let mut env = Env::new(scenarios[k].1.clone())?;
-            let (pool, success) = roll_out(&mut env, pilot, labeller, seed, stride)?;
-            Ok::<_, DistillError>((scenarios[k].0, pool, success))
+            let job = &jobs[k];
+            let mut env = Env::new(job.scenario.clone())?;
+            let labeller = match job.teacher {
+                Some(m) => Labeller::Rule(RulePolicy::new(m)),
+                None => Labeller::Anchor(anchor),
+            };
+            let mut pilot: Box<dyn Policy> = match (student, job.teacher) {
+                (Some(actor), _) => Box::new(ActorPolicy::flying(actor)),
+                (None, Some(m)) => Box::new(RulePolicy::new(m)),
+                (None, None) => Box::new(ActorPolicy::flying(anchor)),
+            };
+            let (pool, success) = roll_out(&mut env, pilot.as_mut(), labeller, seed, stride)?;
+            Ok::<_, DistillError>((job.scenario.task, pool, success))
         })
         .collect::<Result<Vec<_>, _>>()?;
     let mut pools: [Pool; Task::COUNT] = Default::default();
@@ -306,15 +365,21 @@ fn round_samples(
     Ok((pools, rate))
 }
 
-fn scenarios(
+fn jobs(
     list: &[EvolutionScenario],
+    teacher: impl Fn(usize) -> Result<Option<Method>, DistillError>,
     step_limit: u64,
-) -> Result<Vec<(Task, Scenario, usize)>, DistillError> {
+) -> Result<Vec<Job>, DistillError> {
     list.iter()
-        .map(|s| {
+        .enumerate()
+        .map(|(k, s)| {
             let scenario =
                 scenario_of(s, step_limit).ok_or_else(|| DistillError::Task(s.task.clone()))?;
-            Ok((scenario.task, scenario, s.episodes))
+            Ok(Job {
+                scenario,
+                episodes: s.episodes,
+                teacher: teacher(k)?,
+            })
         })
         .collect()
 }
@@ -326,18 +391,29 @@ pub fn distill(
     config: &DistillConfig,
     mut on_round: impl FnMut(&RoundReport),
 ) -> Result<Distilled, DistillError> {
-    let teacher: Method = config.teacher.parse().map_err(DistillError::Teacher)?;
+    let parse = |name: &str| -> Result<Method, DistillError> {
+        name.parse().map_err(DistillError::Teacher)
+    };
+    let default_teacher = parse(&config.teacher)?;
     if start.inputs() != FEATURES || start.outputs() != ACTION_DIM {
         return Err(DistillError::Shape {
             inputs: start.inputs(),
             outputs: start.outputs(),
         });
     }
-    let teach = scenarios(&config.teach, config.step_limit)?;
-    let keep = scenarios(&config.keep, config.step_limit)?;
-    let check: Vec<(Scenario, usize)> = scenarios(&config.check, config.step_limit)?
+    let teach_list: Vec<EvolutionScenario> = config.teach.iter().map(|t| t.scenario()).collect();
+    let teach = jobs(
+        &teach_list,
+        |k| match &config.teach[k].teacher {
+            Some(name) => parse(name).map(Some),
+            None => Ok(Some(default_teacher)),
+        },
+        config.step_limit,
+    )?;
+    let keep = jobs(&config.keep, |_| Ok(None), config.step_limit)?;
+    let check: Vec<(Scenario, usize)> = jobs(&config.check, |_| Ok(None), config.step_limit)?
         .into_iter()
-        .map(|(_, s, n)| (s, n))
+        .map(|j| (j.scenario, j.episodes))
         .collect();
     let scoring = Scoring {
         failure_ratio: config.failure_ratio,
@@ -345,6 +421,8 @@ pub fn distill(
     };
     let mut best: Option<(f64, usize, MultiTaskMlp)> = None;
     let mut student = start.clone();
+    // What flies and is checked: the running average of the trained weights.
+    let mut average = start.clone();
     let mut optimizer = Adam::new(
         AdamConfig {
             learning_rate: config.learning_rate,
@@ -358,38 +436,31 @@ pub fn distill(
     let mut reports = Vec::with_capacity(config.rounds);
     for round in 0..config.rounds {
         let seed_base = SEED_BASE + 1_000_000 * round as u64;
-        let (teach_pilot, keep_pilot) = if round == 0 {
-            (Pilot::Teacher(teacher), Pilot::Student(start))
-        } else {
-            (Pilot::Student(&student), Pilot::Student(&student))
-        };
-        let (taught, teach_success) = round_samples(
-            &teach,
-            teach_pilot,
-            Labeller::Teacher(teacher),
-            seed_base,
-            config.stride,
-        )?;
-        let (kept, keep_success) = round_samples(
-            &keep,
-            keep_pilot,
-            Labeller::Anchor(start),
-            seed_base + 500_000,
-            config.stride,
-        )?;
+        let pilot = (round > 0).then_some(&average);
+        let (taught, teach_success) =
+            round_samples(&teach, pilot, start, seed_base, config.stride)?;
+        let (kept, keep_success) =
+            round_samples(&keep, pilot, start, seed_base + 500_000, config.stride)?;
         for (i, p) in taught.into_iter().chain(kept).enumerate() {
             pools[i].extend(p);
         }
-        let loss = train_round(&mut student, &mut optimizer, &pools, config, &mut rng);
+        let [teach_loss, keep_loss] = train_round(
+            &mut student,
+            &mut average,
+            &mut optimizer,
+            &pools,
+            config,
+            &mut rng,
+        );
         let checked = if check.is_empty() {
             None
         } else {
-            Some(fitness(&student, &check, scoring, config.check_seed_base)?)
+            Some(fitness(&average, &check, scoring, config.check_seed_base)?)
         };
         // Higher fitness is better; without a check every round beats the one before.
         let score = checked.map_or(round as f64, |f| f.fitness);
         if best.as_ref().is_none_or(|(b, _, _)| score > *b) {
-            best = Some((score, round, student.clone()));
+            best = Some((score, round, average.clone()));
         }
         let report = RoundReport {
             round,
@@ -397,7 +468,8 @@ pub fn distill(
             keep_samples: pools[2].len() + pools[3].len(),
             teach_success,
             keep_success,
-            loss,
+            teach_loss,
+            keep_loss,
             check: checked,
         };
         on_round(&report);
@@ -405,7 +477,7 @@ pub fn distill(
     }
     let (actor, best_round) = match best {
         Some((_, round, actor)) => (actor, round),
-        None => (student, 0),
+        None => (average, 0),
     };
     Ok(Distilled {
         actor,
@@ -415,56 +487,96 @@ pub fn distill(
 }
 
 /// `config.updates_per_round` Adam steps on the mean squared error, each batch drawn evenly
-/// from the non-empty pools; returns the mean loss of the last 100 updates.
+/// from the pools as `keep_share` says, each followed by the averaging step; returns the mean
+/// squared error of the last 100 updates' teach and keep samples.
 fn train_round(
     student: &mut MultiTaskMlp,
+    average: &mut MultiTaskMlp,
     optimizer: &mut Adam,
     pools: &[Pool; 2 * Task::COUNT],
     config: &DistillConfig,
     rng: &mut ChaCha8Rng,
-) -> f32 {
-    let live: Vec<usize> = (0..pools.len()).filter(|&i| pools[i].len() > 0).collect();
-    if live.is_empty() {
-        return f32::NAN;
-    }
-    let per_pool = (config.batch_size / live.len()).max(1);
+) -> [f32; 2] {
+    // Samples per batch from each pool: `keep_share` of the batch from the keep pools, the
+    // rest from the teach pools, split evenly over the non-empty ones of each kind.
+    let live = |kind: usize| {
+        (0..Task::COUNT)
+            .filter(|&t| pools[kind * Task::COUNT + t].len() > 0)
+            .count()
+    };
+    let (teach_live, keep_live) = (live(0), live(1));
+    let keep_share = match (teach_live, keep_live) {
+        (0, 0) => return [f32::NAN; 2],
+        (_, 0) => 0.0,
+        (0, _) => 1.0,
+        _ => f64::from(config.keep_share),
+    };
+    let counts: Vec<usize> = (0..pools.len())
+        .map(|p| {
+            let (kind, n_live) = if p < Task::COUNT {
+                (0, teach_live)
+            } else {
+                (1, keep_live)
+            };
+            if pools[p].len() == 0 {
+                return 0;
+            }
+            let share = if kind == 0 {
+                1.0 - keep_share
+            } else {
+                keep_share
+            };
+            ((config.batch_size as f64 * share / n_live as f64).round() as usize).max(1)
+        })
+        .collect();
+    let total = (counts.iter().sum::<usize>() * ACTION_DIM) as f32;
     let mut tape = Tape::default();
     let mut obs = Vec::new();
     let mut targets = Vec::new();
     let mut recent = Vec::new();
     for _ in 0..config.updates_per_round {
         let mut grads = student.zeros_like();
-        let mut loss = 0.0;
-        let total = (per_pool * live.len() * ACTION_DIM) as f32;
-        for &p in &live {
+        // Squared error summed per kind (teach, keep), per element of that kind's samples.
+        let mut loss = [0.0f32; 2];
+        for (p, &count) in counts.iter().enumerate().filter(|(_, c)| **c > 0) {
             let task = p % Task::COUNT;
             let pool = &pools[p];
             obs.clear();
             targets.clear();
-            for _ in 0..per_pool {
+            for _ in 0..count {
                 let j = rng.random_range(0..pool.len());
                 obs.extend_from_slice(&pool.obs[j * FEATURES..(j + 1) * FEATURES]);
                 targets.extend_from_slice(&pool.actions[j * ACTION_DIM..(j + 1) * ACTION_DIM]);
             }
-            student.forward(task, &obs, per_pool, &mut tape);
+            student.forward(task, &obs, count, &mut tape);
+            let kind_elements = counts[(p / Task::COUNT) * Task::COUNT..][..Task::COUNT]
+                .iter()
+                .sum::<usize>() as f32
+                * ACTION_DIM as f32;
             let d: Vec<f32> = tape
                 .output()
                 .iter()
                 .zip(&targets)
                 .map(|(y, t)| {
-                    loss += (y - t) * (y - t) / total;
+                    loss[p / Task::COUNT] += (y - t) * (y - t) / kind_elements;
                     2.0 * (y - t) / total
                 })
                 .collect();
             student.backward(&tape, &d, Some(&mut grads), false);
         }
         optimizer.update(student.layers_mut(), grads.layers());
+        if config.average_rate >= 1.0 {
+            average.clone_from(student);
+        } else {
+            average.soft_update_from(student, config.average_rate);
+        }
         recent.push(loss);
         if recent.len() > 100 {
             recent.remove(0);
         }
     }
-    recent.iter().sum::<f32>() / recent.len().max(1) as f32
+    let n = recent.len().max(1) as f32;
+    [0, 1].map(|k| recent.iter().map(|l| l[k]).sum::<f32>() / n)
 }
 
 #[cfg(test)]
@@ -484,22 +596,23 @@ mod tests {
             learning_rate: 3e-3,
             step_limit: 60,
             stride: 2,
-            teach: vec![EvolutionScenario::paper("driving", 16, 4, 2)],
+            teach: vec![TeachScenario::paper("driving", 16, 4, 2)],
             keep: vec![EvolutionScenario::paper("collecting", 8, 2, 2)],
             ..DistillConfig::default()
         }
     }
 
-    /// Mean squared distance between two actors' actions on `obs` of `task`.
-    fn gap(a: &MultiTaskMlp, b: &MultiTaskMlp, task: Task, obs: &Pool) -> f32 {
-        let n = obs.len();
+    /// Mean squared distance between `actor`'s actions and the labels of `pool` (task `task`).
+    fn error(actor: &MultiTaskMlp, task: Task, pool: &Pool) -> f32 {
         let mut sum = 0.0;
-        for j in 0..n {
-            let x = &obs.obs[j * FEATURES..(j + 1) * FEATURES];
-            let (ya, yb) = (a.predict(task.index(), x), b.predict(task.index(), x));
-            sum += ya.iter().zip(&yb).map(|(p, q)| (p - q) * (p - q)).sum::<f32>();
+        for j in 0..pool.len() {
+            let y = actor.predict(task.index(), &pool.obs[j * FEATURES..(j + 1) * FEATURES]);
+            for (k, v) in y.iter().enumerate() {
+                let t = pool.actions[j * ACTION_DIM + k];
+                sum += (v - t) * (v - t);
+            }
         }
-        sum / n.max(1) as f32
+        sum / pool.len().max(1) as f32
     }
 
     #[test]
@@ -507,49 +620,57 @@ mod tests {
         let start = tiny();
         let config = tiny_config();
         let out = distill(&start, &config, |_| {}).unwrap();
-        // Fresh labelled observations of the teacher flying the teach scenario.
-        let teach = scenarios(&config.teach, 60).unwrap();
-        let (pools, success) = round_samples(
-            &teach,
-            Pilot::Teacher(Method::Enclose),
-            Labeller::Teacher(Method::Enclose),
-            99,
-            3,
+        // Fresh observations of the teacher flying the teach scenario, labelled by it.
+        let teach = jobs(
+            &[EvolutionScenario::paper("driving", 16, 4, 2)],
+            |_| Ok(Some(Method::Enclose)),
+            60,
         )
         .unwrap();
+        let (taught, success) = round_samples(&teach, None, &start, 99, 3).unwrap();
         assert!(success.is_finite());
-        let labels = &pools[Task::Driving.index()];
-        let err = |actor: &MultiTaskMlp| {
-            let mut sum = 0.0;
-            for j in 0..labels.len() {
-                let y = actor.predict(0, &labels.obs[j * FEATURES..(j + 1) * FEATURES]);
-                for (k, v) in y.iter().enumerate() {
-                    let t = labels.actions[j * ACTION_DIM + k];
-                    sum += (v - t) * (v - t);
-                }
-            }
-            sum / labels.len() as f32
-        };
-        assert!(
-            err(&out.actor) < 0.5 * err(&start),
-            "imitation error {} vs {} before",
-            err(&out.actor),
-            err(&start)
+        let labels = &taught[Task::Driving.index()];
+        assert!(labels.len() > 100, "{} samples", labels.len());
+        let (before, after) = (
+            error(&start, Task::Driving, labels),
+            error(&out.actor, Task::Driving, labels),
         );
-        // The keep task's head and the shared layer moved, but its actions stay near the anchor.
-        let keep = scenarios(&config.keep, 60).unwrap();
-        let (kept, _) = round_samples(
-            &keep,
-            Pilot::Student(&start),
-            Labeller::Anchor(&start),
-            77,
-            3,
-        )
-        .unwrap();
-        let drift = gap(&out.actor, &start, Task::Collecting, &kept[1]);
+        assert!(
+            after < 0.5 * before,
+            "imitation error {after} vs {before} before"
+        );
+        // The keep task's actions stay near the anchor's on the anchor's own flights.
+        let keep = jobs(&config.keep, |_| Ok(None), 60).unwrap();
+        let (kept, _) = round_samples(&keep, None, &start, 77, 3).unwrap();
+        let drift = error(
+            &out.actor,
+            Task::Collecting,
+            &kept[Task::Collecting.index()],
+        );
         assert!(drift < 0.05, "keep drift {drift}");
         assert_eq!(out.rounds.len(), 2);
         assert!(out.rounds[1].keep_samples > out.rounds[0].keep_samples);
+    }
+
+    #[test]
+    fn the_best_checked_round_is_kept() {
+        let start = tiny();
+        let config = DistillConfig {
+            rounds: 3,
+            updates_per_round: 50,
+            check: vec![EvolutionScenario::paper("driving", 4, 2, 2)],
+            ..tiny_config()
+        };
+        let out = distill(&start, &config, |_| {}).unwrap();
+        let best = out
+            .rounds
+            .iter()
+            .map(|r| r.check.expect("checked").fitness)
+            .fold(f64::MIN, f64::max);
+        assert_eq!(
+            out.rounds[out.best_round].check.map(|c| c.fitness),
+            Some(best)
+        );
     }
 
     #[test]
@@ -577,8 +698,16 @@ mod tests {
         };
         let e = distill(&start, &bad, |_| {}).unwrap_err().to_string();
         assert!(e.contains("nobody"), "{e}");
+        let mut own = TeachScenario::paper("driving", 4, 1, 1);
+        own.teacher = Some("somebody".into());
         let bad = DistillConfig {
-            teach: vec![EvolutionScenario::paper("grazing", 4, 1, 1)],
+            teach: vec![own],
+            ..tiny_config()
+        };
+        let e = distill(&start, &bad, |_| {}).unwrap_err().to_string();
+        assert!(e.contains("somebody"), "{e}");
+        let bad = DistillConfig {
+            teach: vec![TeachScenario::paper("grazing", 4, 1, 1)],
             ..tiny_config()
         };
         let e = distill(&start, &bad, |_| {}).unwrap_err().to_string();

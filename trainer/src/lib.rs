@@ -39,8 +39,8 @@
 
 pub mod checkpoint;
 pub mod config;
-pub mod distill;
 pub mod ddpg;
+pub mod distill;
 pub mod eval;
 pub mod evolve;
 pub mod export;

@@ -288,13 +288,14 @@ fn main() -> Result<()> {
                         )
                     });
                     println!(
-                        "round {}: {} teach + {} keep samples, teach success {:.0}%, keep success {:.0}%, loss {:.5}{check} ({:.0} s)",
+                        "round {}: {} teach + {} keep samples, teach success {:.0}%, keep success {:.0}%, MSE teach {:.5} keep {:.5}{check} ({:.0} s)",
                         r.round,
                         r.teach_samples,
                         r.keep_samples,
                         100.0 * r.teach_success,
                         100.0 * r.keep_success,
-                        r.loss,
+                        r.teach_loss,
+                        r.keep_loss,
                         t0.elapsed().as_secs_f64()
                     )
                 })
