@@ -534,7 +534,7 @@ mod tests {
         let p = round_the_flock([100.0, 0.0], [-100.0, 0.0], centre, 30.0);
         let (a, rho) = polar(p, centre);
         assert!((a.abs() - ORBIT_STEP).abs() < 1e-9, "bearing {a}");
-        assert!(rho >= 30.0 && rho <= 100.0 + 1e-9, "radius {rho}");
+        assert!((30.0..=100.0 + 1e-9).contains(&rho), "radius {rho}");
         // Almost there (within one bearing step): straight on.
         let near = [30.0 * 0.2f64.cos(), 30.0 * 0.2f64.sin()];
         assert_eq!(round_the_flock([40.0, 0.0], near, centre, 35.0), near);

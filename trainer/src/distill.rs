@@ -252,7 +252,7 @@ struct Job {
 
 /// Who labels what the pilot saw.
 enum Labeller<'a> {
-    Rule(RulePolicy),
+    Rule(Box<RulePolicy>),
     Anchor(&'a MultiTaskMlp),
 }
 
@@ -276,7 +276,7 @@ fn roll_out(
     let mut actions = Vec::new();
     loop {
         let world = env.observation();
-        if world.step % stride.max(1) == 0 {
+        if world.step.is_multiple_of(stride.max(1)) {
             let a = world.area;
             let limits = Limits::arena(
                 [a.width as f32, a.depth as f32, a.ceiling as f32],
@@ -337,7 +337,7 @@ fn round_samples(
             let job = &jobs[k];
             let mut env = Env::new(job.scenario.clone())?;
             let labeller = match job.teacher {
-                Some(m) => Labeller::Rule(RulePolicy::new(m)),
+                Some(m) => Labeller::Rule(Box::new(RulePolicy::new(m))),
                 None => Labeller::Anchor(anchor),
             };
             let mut pilot: Box<dyn Policy> = match (student, job.teacher) {
