@@ -426,7 +426,7 @@ fn round_the_flock(h: [f64; 2], point: [f64; 2], centre: [f64; 2], keep_out: f64
 }
 
 /// Bearing step of [`round_the_flock`], radians (about 17 degrees).
-pub const ORBIT_STEP: f64 = 0.3;
+const ORBIT_STEP: f64 = 0.3;
 
 fn polar(p: [f64; 2], centre: [f64; 2]) -> (f64, f64) {
     let v = [p[0] - centre[0], p[1] - centre[1]];
