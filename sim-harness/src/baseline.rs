@@ -61,7 +61,7 @@ pub enum Method {
     Lama,
     /// DESIGN §2's best simple rule: each herder a different far target.
     FarthestTargets,
-    /// Strömbom to the goal, then a ring around it: each herder squeezes its own sector.
+    /// Strömbom whose driving arc closes into a ring round the flock near the goal.
     Enclose,
 }
 
@@ -85,9 +85,7 @@ impl Method {
             Method::Enclose => "enclose",
         }
     }
-}
 
-impl Method {
     /// How far inside the walls the rule keeps its herders, in goal radii. [`Method::Enclose`]
     /// keeps 4 m (at R = 45 m): its ring reaches the walls when the flock does, and the
     /// actuation noise would carry a herder over a 1 m margin.
@@ -307,17 +305,28 @@ impl RulePolicy {
             by_angle.sort_by(|a, b| a.0.total_cmp(&b.0));
             let ring = radius + standoff;
             // Evenly over the arc, ends included, but never closer than a full ring's spacing
-            // (a 360-degree arc must not put its two ends on one spot).
+            // (a 360-degree arc must not put its two ends on one spot). Strömbom's arc (120
+            // degrees) never meets that cap, and its slots keep their original expression: the
+            // same angles, but rounded differently, and episodes are chaotic enough that the
+            // committed sweeps of each rule reproduce only with their own expression.
+            let enclose = self.method == Method::Enclose;
             let spacing = if d == 1 {
                 0.0
             } else {
                 (arc / (d - 1) as f64).min(std::f64::consts::TAU / d as f64)
             };
             for (slot, &(_, i)) in self.by_angle.iter().enumerate() {
-                let a = base + (slot as f64 - 0.5 * (d - 1) as f64) * spacing;
-                if self.method == Method::Enclose {
+                let a = if enclose {
                     self.orbit[i] = Some((centroid, radius + 0.5 * standoff));
-                }
+                    base + (slot as f64 - 0.5 * (d - 1) as f64) * spacing
+                } else {
+                    let frac = if d == 1 {
+                        0.0
+                    } else {
+                        slot as f64 / (d - 1) as f64 - 0.5
+                    };
+                    base + frac * arc
+                };
                 self.goals[i] = [
                     centroid[0] + ring * a.cos() - shift * back[0],
                     centroid[1] + ring * a.sin() - shift * back[1],
