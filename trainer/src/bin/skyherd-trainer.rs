@@ -117,7 +117,7 @@ enum Command {
         /// First episode seed (held out from training).
         #[arg(long, default_value_t = 2_000_000_000)]
         seed_base: u64,
-        /// Also run the four rule-based baselines.
+        /// Also run the rule-based baselines (every `skyherd_sim::baseline::Method`).
         #[arg(long)]
         baselines: bool,
         /// Also run this float actor (the export's `--actor-out`, or a checkpoint).
