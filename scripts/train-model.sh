@@ -2,10 +2,10 @@
 # Trains the shipped model from nothing, as models/MODEL.md records it: stage 1 (warm start,
 # MTDDPG, first evolution stage; about 32 min on the 2-core development machine), stage 2 (the
 # second evolution stage; about 18 min), then the export (quantization-aware fine-tuning and
-# int8/int16 quantization; about 20 s); then mtddpg-v2 from mtddpg-v1's float actor: the
-# Enclose rule distilled into its large flocks (about 5 min) and its export. About 56 min in all.
-# Seeded: the same commands give the same model files.
-#   ./scripts/train-model.sh            # -> models/mtddpg-v1.skym, models/mtddpg-v2.skym and
+# int8/int16 quantization; about 20 s); then mtddpg-v3 from mtddpg-v1's float actor, widened to
+# encoder v4's features: the Enclose rule distilled into its large flocks (about 4 min) and its
+# export. About 55 min in all. Seeded: the same commands give the same model files.
+#   ./scripts/train-model.sh            # -> models/mtddpg-v1.skym, models/mtddpg-v3.skym and
 #                                       #    their float actors in trainer/shipped/
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -17,8 +17,8 @@ trainer="$CARGO_TARGET_DIR/release/skyherd-trainer"
   --checkpoint runs/mtddpg-v1/evolved.safetensors
 "$trainer" export --checkpoint runs/mtddpg-v1-refine/evolved.safetensors \
   --out models/mtddpg-v1.skym --actor-out trainer/shipped/mtddpg-v1.actor.safetensors
-"$trainer" distill --config trainer/configs/mtddpg-v2-distill.toml \
-  --actor runs/mtddpg-v1-refine/evolved.safetensors --out runs/mtddpg-v2/distilled.safetensors \
-  | tee trainer/shipped/mtddpg-v2-distill.log.txt
-"$trainer" export --checkpoint runs/mtddpg-v2/distilled.safetensors \
-  --out models/mtddpg-v2.skym --actor-out trainer/shipped/mtddpg-v2.actor.safetensors
+"$trainer" distill --config trainer/configs/mtddpg-v3-distill.toml \
+  --actor runs/mtddpg-v1-refine/evolved.safetensors --out runs/mtddpg-v3/distilled.safetensors \
+  | tee trainer/shipped/mtddpg-v3-distill.log.txt
+"$trainer" export --checkpoint runs/mtddpg-v3/distilled.safetensors \
+  --out models/mtddpg-v3.skym --actor-out trainer/shipped/mtddpg-v3.actor.safetensors

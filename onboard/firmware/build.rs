@@ -1,5 +1,6 @@
 //! Puts `memory.x` on the linker path and writes the embedded model: seeded, untrained
-//! weights in the size of the shipped actor (46 features, hidden 128, 2 shared layers), so
+//! weights in the size of the newest shipped actor (51 features, encoder v4, hidden 128, 2 shared
+//! layers), so
 //! the flash numbers are the real ones. A trained model file would replace it one for one.
 
 use std::path::PathBuf;
@@ -18,12 +19,12 @@ fn main() {
         .and_then(|h| h.parse().ok())
         .unwrap_or(128);
     println!("cargo:rerun-if-env-changed=SKYHERD_FIRMWARE_HIDDEN");
-    let shape = ActorShape { features: 46, hidden, shared_layers: 2 };
+    let shape = ActorShape { features: 51, hidden, shared_layers: 2 };
     let mut rng = SplitMix64::new(7);
     let calibration: Vec<(Task, Vec<f32>)> = (0..256)
-        .map(|i| (Task::ALL[i % 2], (0..46).map(|_| rng.uniform(-2.0, 2.0) as f32).collect()))
+        .map(|i| (Task::ALL[i % 2], (0..51).map(|_| rng.uniform(-2.0, 2.0) as f32).collect()))
         .collect();
-    let meta = ModelMeta { encoder_version: 3, max_speed: 5.0 }; // skyherd_onboard::obs::ENCODER_VERSION
+    let meta = ModelMeta { encoder_version: 4, max_speed: 5.0 }; // skyherd_onboard::obs::ENCODER_VERSION
     let bytes = quantize(
         &FloatActor::random(shape, 42),
         meta,

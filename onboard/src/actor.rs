@@ -37,7 +37,7 @@ use skyherd_model::format::{ACTIONS, WeightWidth, requantize, requantize_wide};
 pub use skyherd_model::format::{MAX_FEATURES, MAX_WIDTH};
 use skyherd_model::{FormatError, LayerView, ModelView, Task, decode};
 
-use crate::obs::{ENCODER_VERSION, FEATURES};
+use crate::obs::{ENCODER_VERSION, FEATURES, feature_count};
 
 /// The quantized actor, checked against this build's observation encoder.
 #[derive(Clone, Copy, Debug)]
@@ -47,9 +47,14 @@ pub struct Actor<'m> {
 
 impl<'m> Actor<'m> {
     /// An actor over a decoded model; fails with [`FormatError::EncoderMismatch`] unless the model
-    /// was made for [`ENCODER_VERSION`] and [`FEATURES`].
+    /// was made for an encoder version this build serves ([`ENCODER_VERSION`], or an older one
+    /// whose features are a prefix, see [`feature_count`]) with that version's feature count.
     pub fn new(model: ModelView<'m>) -> Result<Actor<'m>, FormatError> {
-        if let Err(e) = model.check_encoder(ENCODER_VERSION, FEATURES) {
+        let expected = match feature_count(model.encoder_version) {
+            Some(features) => (model.encoder_version, features),
+            None => (ENCODER_VERSION, FEATURES),
+        };
+        if let Err(e) = model.check_encoder(expected.0, expected.1) {
             log::warn!("model {:#010x} rejected: {}", model.crc(), e);
             return Err(e);
         }

@@ -50,6 +50,18 @@
 //! | 43 | drone distance to the nearest wall, `sc(d / R)` |
 //! | 44 | smallest target distance to any wall, `sc(d / R)` |
 //! | 45 | fraction of targets within one goal radius of the drone |
+//! | 46-47 | (v4) the drone's slot on the enclosing ring, relative (see below) |
+//! | 48-49 | (v4) where to head now for that slot without crossing the flock, relative |
+//! | 50 | (v4) the slot's bearing from straight behind the flock, counter-clockwise, in half turns |
+//!
+//! The enclosing ring (features 46-50) is the geometry of the simulator's Enclose rule, which
+//! herds flocks of 256: every drone stands on an arc behind the flock, at the flock radius plus
+//! [`STANDOFF`], in the order of the drones' bearing round the centroid, evenly spaced; the arc
+//! opens from [`RING_ARC`] to a full ring as the centroid comes within [`RING_WRAP`] goal radii
+//! of the goal, and the ring's centre moves up to [`RING_SHIFT`] goal radii goalwards. The way
+//! there goes round the flock disc (radius plus half the stand-off); both points are kept
+//! [`RING_WALL_MARGIN`] inside the walls. A drone needs its rank
+//! among all herders for its slot, which no v3 feature gives.
 //!
 //! "relative" means `compress((p - own) / R)` in the local frame, with
 //! `compress(v) = v * ln(1 + |v|) / |v|`; `sc(x) = sign(x) ln(1 + |x|)`.
@@ -76,7 +88,9 @@
 
 use core::fmt;
 
-use libm::{logf, sqrtf};
+use core::f32::consts::{PI, TAU};
+
+use libm::{atan2f, cosf, logf, sinf, sqrtf};
 
 /// Version of the feature layout; written into every model file, a mismatch is an error.
 ///
@@ -88,10 +102,36 @@ use libm::{logf, sqrtf};
 /// ceiling: a room's 3 m ceiling does not shrink with the rest of the world, so under v2 a
 /// policy trained in the 10 m-high paper arena flew at 0.6 m indoors, 15 goal radii higher (and
 /// so much weaker, eq 6 follows the 3-D distance) than the 2 m it learned.
-pub const ENCODER_VERSION: u16 = 3;
+///
+/// v4 appends five features (46-50: the drone's slot on the enclosing ring and the way to it
+/// round the flock) and leaves the first 46 exactly as v3 computes them, so a v3 model still
+/// flies: it reads the first [`V3_FEATURES`] (see [`feature_count`]).
+pub const ENCODER_VERSION: u16 = 4;
 
-/// Length of the feature vector.
-pub const FEATURES: usize = 46;
+/// Length of the feature vector [`encode`] writes (encoder v4).
+pub const FEATURES: usize = 51;
+
+/// Length of encoder v3's feature vector, a prefix of v4's.
+pub const V3_FEATURES: usize = 46;
+
+/// How many features a model made for encoder `version` reads, or `None` for a version this
+/// encoder cannot serve. Every supported version's features are a prefix of [`encode`]'s.
+pub const fn feature_count(version: u16) -> Option<usize> {
+    match version {
+        3 => Some(V3_FEATURES),
+        4 => Some(FEATURES),
+        _ => None,
+    }
+}
+
+/// The encoder version whose feature vector has `features` entries, if any.
+pub const fn version_for(features: usize) -> Option<u16> {
+    match features {
+        V3_FEATURES => Some(3),
+        FEATURES => Some(4),
+        _ => None,
+    }
+}
 
 /// How far behind a target (in goal radii) the "behind point" features sit: 8 m at the paper's
 /// 45 m goal, the stand-off of the best simple driving rule we know.
@@ -514,7 +554,152 @@ pub fn encode(input: &ObsInput<'_>, out: &mut [f32; FEATURES]) -> Result<LocalFr
     let (wall_distance, wall_point) = nearest_wall(own, input.area);
     put2(out, 41, rel(wall_point));
     out[43] = soft(wall_distance * inv_r);
+
+    // v4: the drone's slot on the enclosing ring and the way there round the flock.
+    if n > 0 {
+        let slot = ring_slot(input, &frame, centroid, flock_radius);
+        // Kept off the walls as the rule keeps its herders: a slot beyond a wall would teach
+        // the drone to wait at the fence, where the actuation noise carries it out.
+        let margin = RING_WALL_MARGIN * input.goal_radius;
+        let inside = |p: [f32; 2]| {
+            let clamp = |x: f32, size: f32| {
+                x.clamp(smaller(margin, 0.5 * size), larger(size - margin, 0.5 * size))
+            };
+            [clamp(p[0], input.area[0]), clamp(p[1], input.area[1])]
+        };
+        let slot_world = inside(add(centroid, frame.to_world(slot.point)));
+        let way_world = inside(add(centroid, frame.to_world(slot.waypoint)));
+        put2(out, 46, rel(slot_world));
+        put2(out, 48, rel(way_world));
+        out[50] = slot.angle * (1.0 / PI);
+    }
     Ok(frame)
+}
+
+/// Where the ring rule puts a drone, in the local frame relative to the flock centroid.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct RingSlot {
+    /// Slot angle from straight behind the flock (away from the goal), counter-clockwise,
+    /// radians in [-pi, pi].
+    angle: f32,
+    /// The slot.
+    point: [f32; 2],
+    /// Where to head now to reach the slot without crossing the flock disc.
+    waypoint: [f32; 2],
+}
+
+/// The enclosing-ring slot (encoder v4, features 46-50): the drones stand on an arc behind the
+/// flock at its radius plus the stand-off, in the order of their bearing around the centroid,
+/// evenly spaced; the arc opens from 120 degrees to a full ring as the centroid comes within
+/// [`RING_WRAP`] goal radii of the goal, and the ring's centre moves up to [`RING_SHIFT`] goal
+/// radii goalwards. Every drone sees every herder, so each computes its own slot alone and the
+/// slots do not collide. The geometry is the simulator's Enclose rule; the collectors it sets
+/// aside are not known here, so all drones count.
+fn ring_slot(
+    input: &ObsInput<'_>,
+    frame: &LocalFrame,
+    centroid: [f32; 2],
+    flock_radius: f32,
+) -> RingSlot {
+    let r = input.goal_radius;
+    let standoff = STANDOFF * r;
+    // Bearings are measured in the "behind" frame: the local frame turned half a turn, whose
+    // first axis points from the goal through the centroid.
+    let behind = |p: [f32; 3]| {
+        let v = frame.to_local(sub([p[0], p[1]], centroid));
+        [-v[0], -v[1]]
+    };
+    let own = behind(input.herders[input.own_index]);
+    let own_key = pseudo_angle(own);
+    let mut rank = 0usize;
+    for (j, &h) in input.herders.iter().enumerate() {
+        let key = pseudo_angle(behind(h));
+        rank += usize::from(key < own_key || (key == own_key && j < input.own_index));
+    }
+    let m = input.herders.len();
+    let d = sqrtf(dist2(centroid, input.goal)) / r;
+    let closing = ((RING_WRAP - d) / RING_WRAP).clamp(0.0, 1.0);
+    let arc = RING_ARC + closing * (TAU - RING_ARC);
+    let shift = RING_SHIFT * r * closing * d.min(1.0);
+    let spacing = if m > 1 {
+        (arc / (m - 1) as f32).min(TAU / m as f32)
+    } else {
+        0.0
+    };
+    let angle = (rank as f32 - 0.5 * (m - 1) as f32) * spacing;
+    let ring = flock_radius + standoff;
+    // Back in the local frame: "behind" is the negative first axis, the shift is forward.
+    let point = [shift - ring * cosf(angle), -ring * sinf(angle)];
+    let here = [-own[0], -own[1]];
+    let waypoint = round_the_disc(here, point, flock_radius + 0.5 * standoff);
+    RingSlot {
+        angle,
+        point,
+        waypoint,
+    }
+}
+
+/// Arc of the ring rule far from the goal, radians (Strömbom's 120 degrees).
+pub const RING_ARC: f32 = 120.0 * PI / 180.0;
+/// Centroid distance to the goal, in goal radii, within which the ring starts to close.
+pub const RING_WRAP: f32 = 2.0;
+/// How far goalwards the closed ring's centre sits, in goal radii.
+pub const RING_SHIFT: f32 = 0.8;
+/// How far inside the walls the ring's slots and ways are kept, in goal radii (4 m at the
+/// paper's 45 m goal).
+pub const RING_WALL_MARGIN: f32 = 4.0 / 45.0;
+/// Bearing step of the detour round the flock, radians (about 17 degrees).
+const ORBIT_STEP: f32 = 0.3;
+
+/// Where a drone at `h` bound for `point` (both relative to the disc's centre) heads now so as
+/// not to cross the disc of radius `keep_out`: straight there when the segment misses it, else
+/// round it at `point`'s distance, at most [`ORBIT_STEP`] of bearing ahead.
+fn round_the_disc(h: [f32; 2], point: [f32; 2], keep_out: f32) -> [f32; 2] {
+    if segment_distance_to_origin(h, point) >= keep_out {
+        return point;
+    }
+    let ah = atan2f(h[1], h[0]);
+    let ap = atan2f(point[1], point[0]);
+    let mut delta = ap - ah;
+    if delta > PI {
+        delta -= TAU;
+    } else if delta < -PI {
+        delta += TAU;
+    }
+    if delta.abs() <= ORBIT_STEP {
+        return point;
+    }
+    let a = ah + if delta > 0.0 { ORBIT_STEP } else { -ORBIT_STEP };
+    let rho = larger(sqrtf(point[0] * point[0] + point[1] * point[1]), keep_out);
+    [rho * cosf(a), rho * sinf(a)]
+}
+
+/// Distance from the origin to the segment `a`-`b`.
+fn segment_distance_to_origin(a: [f32; 2], b: [f32; 2]) -> f32 {
+    let ab = sub(b, a);
+    let len2 = ab[0] * ab[0] + ab[1] * ab[1];
+    let t = if len2 > 1e-12 {
+        (-(a[0] * ab[0] + a[1] * ab[1]) / len2).clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
+    let p = [a[0] + t * ab[0], a[1] + t * ab[1]];
+    sqrtf(p[0] * p[0] + p[1] * p[1])
+}
+
+/// A number that orders directions as `atan2(v[1], v[0])` does, in (-2, 2], without the
+/// trigonometry: the rank of a bearing needs only its order.
+fn pseudo_angle(v: [f32; 2]) -> f32 {
+    let s = v[0].abs() + v[1].abs();
+    if s == 0.0 {
+        return 0.0;
+    }
+    let p = 1.0 - v[0] / s;
+    if v[1] < 0.0 { -p } else { p }
+}
+
+fn add(a: [f32; 2], b: [f32; 2]) -> [f32; 2] {
+    [a[0] + b[0], a[1] + b[1]]
 }
 
 #[cfg(test)]
@@ -747,5 +932,82 @@ mod tests {
         assert_eq!(octant([1.0, 0.1]), 0);
         assert_eq!(octant([0.1, 1.0]), 1);
         assert_eq!(octant([-1.0, -0.1]), 4);
+    }
+
+    #[test]
+    fn a_lone_drone_far_from_the_goal_has_its_slot_straight_behind_the_flock() {
+        // With one herder the arc has one slot, in its middle: the point behind the whole flock
+        // (features 17-18); behind the flock already, the way there is straight.
+        let herders = [[60.0, 90.0, 2.0]];
+        let targets = scatter(40, 13, [150.0, 150.0], 20.0);
+        let (f, _) = encode_ok(&input(&herders, &targets[..40], 0));
+        assert!((f[46] - f[17]).abs() < 1e-4 && (f[47] - f[18]).abs() < 1e-4, "{f:?}");
+        assert!((f[48] - f[46]).abs() < 1e-6 && (f[49] - f[47]).abs() < 1e-6);
+        assert_eq!(f[50], 0.0);
+    }
+
+    #[test]
+    fn on_the_goal_the_ring_slots_are_even_and_distinct() {
+        // The flock sits on the goal: the arc is a full ring, so M drones get M slots TAU / M
+        // apart, whatever order they are listed in.
+        let targets = scatter(64, 17, [400.0, 380.0], 20.0);
+        let herders: [[f32; 3]; 6] = core::array::from_fn(|k| {
+            let a = 0.9 * k as f32 + 0.3 * (k * k) as f32;
+            [400.0 + 70.0 * cosf(a), 380.0 + 70.0 * sinf(a), 2.0]
+        });
+        let mut angles: [f32; 6] = core::array::from_fn(|own| {
+            encode_ok(&input(&herders, &targets, own)).0[50] * PI
+        });
+        angles.sort_by(f32::total_cmp);
+        for pair in angles.windows(2) {
+            assert!((pair[1] - pair[0] - TAU / 6.0).abs() < 1e-4, "{angles:?}");
+        }
+    }
+
+    /// Undoes `rel` for the point at features `i`, `i + 1`: decompress, to world, scale, add
+    /// the drone's position.
+    fn world_point(f: &[f32; FEATURES], i: usize, frame: &LocalFrame, own: [f32; 3]) -> [f32; 2] {
+        let v = [f[i], f[i + 1]];
+        let c = sqrtf(v[0] * v[0] + v[1] * v[1]);
+        let d = libm::expf(c) - 1.0;
+        let local = if c > 0.0 { [v[0] * d / c, v[1] * d / c] } else { v };
+        let w = frame.to_world(local);
+        [own[0] + w[0] * 45.0, own[1] + w[1] * 45.0]
+    }
+
+    #[test]
+    fn in_front_of_the_flock_the_way_to_the_slot_goes_round_it() {
+        // A drone between the flock and the goal is bound for a slot behind the flock; heading
+        // straight there would drive the flock back, so the way steps round the flock disc, one
+        // orbit step of bearing at a time.
+        let targets = scatter(40, 19, [150.0, 150.0], 20.0);
+        let herders = [[260.0, 250.0, 2.0]];
+        let (f, frame) = encode_ok(&input(&herders, &targets[..40], 0));
+        let slot = world_point(&f, 46, &frame, herders[0]);
+        let way = world_point(&f, 48, &frame, herders[0]);
+        assert!(dist2(slot, way) > 1.0, "slot {slot:?} way {way:?}");
+        let n = targets[..40].len() as f32;
+        let centroid = targets[..40]
+            .iter()
+            .fold([0.0, 0.0], |a, t| [a[0] + t[0] / n, a[1] + t[1] / n]);
+        let bearing = |p: [f32; 2]| atan2f(p[1] - centroid[1], p[0] - centroid[0]);
+        let step = (bearing(way) - bearing([260.0, 250.0])).abs();
+        assert!((step - ORBIT_STEP).abs() < 1e-2, "bearing step {step}");
+    }
+
+    #[test]
+    fn ring_slots_stay_inside_the_walls() {
+        // A flock against the west wall: its ring would reach past the wall; the slots are kept
+        // RING_WALL_MARGIN inside, as the rule keeps its herders.
+        let targets = scatter(64, 23, [30.0, 250.0], 25.0);
+        let herders: [[f32; 3]; 8] =
+            core::array::from_fn(|k| [80.0, 150.0 + 25.0 * k as f32, 2.0]);
+        for own in 0..8 {
+            let mut i = input(&herders, &targets, own);
+            i.goal = [450.0, 250.0];
+            let (f, frame) = encode_ok(&i);
+            let x = world_point(&f, 46, &frame, herders[own])[0];
+            assert!(x >= RING_WALL_MARGIN * 45.0 - 1e-2, "drone {own}: slot at x = {x}");
+        }
     }
 }

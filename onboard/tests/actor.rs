@@ -8,7 +8,7 @@ use std::path::PathBuf;
 use common::{World, observations, seeded_model};
 use skyherd_model::{ActorShape, FloatActor, FormatError, ModelMeta, SplitMix64, Task, quantize};
 use skyherd_onboard::actor::{Actor, infer_any, infer_quantized_any};
-use skyherd_onboard::obs::{ENCODER_VERSION, FEATURES};
+use skyherd_onboard::obs::{ENCODER_VERSION, FEATURES, V3_FEATURES, feature_count};
 
 const GOLDEN_MODEL: &str = "../models/golden/seeded-f46-h32-s2.skym";
 const GOLDEN_VECTORS: &str = "../models/golden/seeded-f46-h32-s2.vectors";
@@ -22,7 +22,11 @@ fn golden_inputs() -> Vec<(Task, [f32; FEATURES])> {
     let mut inputs = observations(77, 48);
     let mut rng = SplitMix64::new(78);
     for i in 0..12 {
-        let f = std::array::from_fn(|_| rng.uniform(-4.0, 4.0) as f32);
+        // The golden model reads encoder v3's features: random values there, zero beyond.
+        let mut f = [0.0; FEATURES];
+        for x in &mut f[..V3_FEATURES] {
+            *x = rng.uniform(-4.0, 4.0) as f32;
+        }
         inputs.push((Task::ALL[i % 2], f));
     }
     for task in Task::ALL {
@@ -42,7 +46,7 @@ fn render(actor: &Actor<'_>) -> String {
         "# task | 46 input features as f32 bit patterns (hex) | expected int16 output of the task output layer\n",
     );
     for (task, features) in golden_inputs() {
-        let bits: Vec<String> = features
+        let bits: Vec<String> = features[..actor.model().features]
             .iter()
             .map(|f| format!("{:08x}", f.to_bits()))
             .collect();
@@ -78,7 +82,11 @@ fn golden_vectors_are_bit_exact() {
             .map(|h| f32::from_bits(u32::from_str_radix(h, 16).unwrap()))
             .collect();
         let expected: Vec<i16> = parts[2].split(' ').map(|q| q.parse().unwrap()).collect();
-        let features: [f32; FEATURES] = features.try_into().unwrap();
+        // The golden model is an encoder-v3 model: it reads the front of today's features.
+        assert_eq!(features.len(), V3_FEATURES);
+        let mut padded = [0.0f32; FEATURES];
+        padded[..V3_FEATURES].copy_from_slice(&features);
+        let features = padded;
         assert_eq!(
             actor.infer_quantized(task, &features).to_vec(),
             expected,
@@ -272,8 +280,65 @@ fn encoder_mismatch_is_an_error() {
     assert_eq!(
         e,
         FormatError::EncoderMismatch {
-            model: (ENCODER_VERSION, 45),
-            expected: (ENCODER_VERSION, 46)
+            model: (ENCODER_VERSION, FEATURES as u16 - 1),
+            expected: (ENCODER_VERSION, FEATURES as u16)
+        }
+    );
+}
+
+/// Quantizes a seeded actor of `features` inputs for encoder `encoder_version`.
+fn model_for(encoder_version: u16, features: usize) -> Vec<u8> {
+    let shape = ActorShape {
+        features,
+        hidden: 16,
+        shared_layers: 1,
+    };
+    let mut rng = SplitMix64::new(21);
+    let cal: Vec<Vec<f32>> = (0..64)
+        .map(|_| (0..features).map(|_| rng.uniform(-2.0, 2.0) as f32).collect())
+        .collect();
+    let meta = ModelMeta {
+        encoder_version,
+        max_speed: 5.0,
+    };
+    quantize(
+        &FloatActor::random(shape, 5),
+        meta,
+        cal.iter().map(|f| (Task::Driving, &f[..])),
+    )
+    .unwrap()
+}
+
+#[test]
+fn a_model_for_encoder_v3_flies_on_the_prefix_of_the_v4_features() {
+    // mtddpg-v1 and -v2 were made for encoder v3, whose 46 features v4 keeps in front.
+    assert_eq!(feature_count(3), Some(V3_FEATURES));
+    assert_eq!(feature_count(ENCODER_VERSION), Some(FEATURES));
+    assert_eq!(feature_count(2), None);
+    let bytes = model_for(3, V3_FEATURES);
+    let actor = Actor::from_bytes(&bytes).expect("a v3 model loads");
+    let mut features = [0.0f32; FEATURES];
+    let mut rng = SplitMix64::new(9);
+    for f in features.iter_mut() {
+        *f = rng.uniform(-1.0, 1.0) as f32;
+    }
+    let a = actor.infer(Task::Driving, &features);
+    // The v4 features do not reach a v3 model.
+    features[V3_FEATURES..].fill(123.0);
+    assert_eq!(actor.infer(Task::Driving, &features), a);
+    // A v3 model must have v3's width, and a v4 model v4's.
+    assert_eq!(
+        Actor::from_bytes(&model_for(3, FEATURES)).unwrap_err(),
+        FormatError::EncoderMismatch {
+            model: (3, FEATURES as u16),
+            expected: (3, V3_FEATURES as u16)
+        }
+    );
+    assert_eq!(
+        Actor::from_bytes(&model_for(4, V3_FEATURES)).unwrap_err(),
+        FormatError::EncoderMismatch {
+            model: (4, V3_FEATURES as u16),
+            expected: (4, FEATURES as u16)
         }
     );
 }

@@ -54,7 +54,7 @@ fn fly(label: &str, args: &[&str]) -> Run {
     binary("skyherd-onboard");
     let output = Command::new(binary("skyherd-sitl"))
         .current_dir(repo())
-        .args(["--model", "models/mtddpg-v1.skym", "--out"])
+        .args(["--model", "models/mtddpg-v3.skym", "--out"])
         .arg(&out)
         .args(args)
         .output()
@@ -80,10 +80,10 @@ fn daemon_log(run: &Run, drone: usize) -> String {
 }
 
 /// The paper's indoor test through the full MAVLink loop: the paper's drones finish within 30 s,
-/// and so must ours on the preset's seed (0). The shipped model takes 28.2 s on seed 0 here
-/// (23.5-61.5 s on seeds 0-15, median 29.4 s; 26-32 s on seeds 0-7 in the simulator alone,
-/// `skyherd-sim run --scenario indoor`); the model before its second evolution stage took
-/// 32.0 s, the Lama clone 57 s. The lockstep loop is deterministic: a second run of the seed
+/// and so must ours on the preset's seed (0). The mission's model, mtddpg-v3, takes 29.3 s on
+/// seed 0 here (25.8-39.7 s on seeds 0-15, median 29.25 s); mtddpg-v1 takes 28.2 s (23.5-61.5
+/// s, median 29.4 s), mtddpg-v1 before its second evolution stage 32.0 s, the Lama clone 57 s.
+/// The lockstep loop is deterministic: a second run of the seed
 /// must give the same mission to the decimetre, so this bound is not a matter of luck.
 #[test]
 fn indoor_two_drones_drive_four_vehicles_to_the_goal_reproducibly() {

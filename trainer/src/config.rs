@@ -441,6 +441,9 @@ pub struct TrainConfig {
     pub eval: EvalConfig,
     /// Evolution-strategies fine-tuning of the task heads after MTDDPG.
     pub evolution: EvolutionConfig,
+    /// The observation encoder version the actor is made for
+    /// (`skyherd_onboard::obs::feature_count`): its input width. mtddpg-v1 was trained on v3.
+    pub encoder_version: u16,
 }
 
 impl Default for TrainConfig {
@@ -456,6 +459,7 @@ impl Default for TrainConfig {
             reward: RewardConfig::default(),
             eval: EvalConfig::default(),
             evolution: EvolutionConfig::default(),
+            encoder_version: skyherd_onboard::obs::ENCODER_VERSION,
         }
     }
 }
@@ -490,6 +494,9 @@ impl TrainConfig {
                 reason: reason.to_owned(),
             })
         };
+        if skyherd_onboard::obs::feature_count(self.encoder_version).is_none() {
+            return bad("encoder_version", "is not a version this build encodes for");
+        }
         let d = &self.ddpg;
         if !(d.gamma > 0.0 && d.gamma <= 1.0) {
             return bad("ddpg.gamma", "must be in (0, 1]");

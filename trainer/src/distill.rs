@@ -40,7 +40,7 @@ use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use skyherd_model::Task;
-use skyherd_onboard::obs::FEATURES;
+use skyherd_onboard::obs::{ENCODER_VERSION, FEATURES, feature_count};
 use skyherd_onboard::safety::Limits;
 use skyherd_sim::baseline::{Method, RulePolicy};
 use skyherd_sim::obs::EncoderBuffers;
@@ -97,6 +97,10 @@ pub struct DistillConfig {
     pub check_seed_base: u64,
     /// A failed check episode scores this many lower bounds.
     pub failure_ratio: f64,
+    /// The observation encoder version the student is made for
+    /// (`skyherd_onboard::obs::feature_count`): its input width. A starting actor made for an
+    /// older version, whose features are a prefix, gets zero weights on the new features.
+    pub encoder_version: u16,
 }
 
 impl Default for DistillConfig {
@@ -117,6 +121,7 @@ impl Default for DistillConfig {
             check: Vec::new(),
             check_seed_base: 8_000_000_000,
             failure_ratio: 12.0,
+            encoder_version: ENCODER_VERSION,
         }
     }
 }
@@ -176,14 +181,21 @@ pub enum DistillError {
     Task(String),
     /// The actor's shape does not fit the encoder or the action.
     #[error(
-        "distill: the actor maps {inputs} inputs to {outputs} outputs, the encoder gives {FEATURES} and actions have {ACTION_DIM}"
+        "distill: the actor maps {inputs} inputs to {outputs} outputs; encoder v{encoder_version} gives {features} and actions have {ACTION_DIM}"
     )]
     Shape {
         /// Actor inputs.
         inputs: usize,
         /// Actor outputs.
         outputs: usize,
+        /// The config's encoder version.
+        encoder_version: u16,
+        /// Its feature count.
+        features: usize,
     },
+    /// The config names an encoder version this build cannot encode for.
+    #[error("distill: encoder version {0} is not one this build encodes for")]
+    EncoderVersion(u16),
     /// The simulator refused a scenario or a step.
     #[error("distill: {0}")]
     Env(#[from] EnvError),
@@ -295,7 +307,7 @@ fn roll_out(
                         frame.world_to_action([v[0] as f32, v[1] as f32, v[2] as f32])
                     }
                     Labeller::Anchor(anchor) => {
-                        let y = anchor.predict(world.task.index(), &features);
+                        let y = anchor.predict(world.task.index(), &features[..anchor.inputs()]);
                         [y[0], y[1], y[2]]
                     }
                 };
@@ -395,10 +407,18 @@ pub fn distill(
         name.parse().map_err(DistillError::Teacher)
     };
     let default_teacher = parse(&config.teacher)?;
-    if start.inputs() != FEATURES || start.outputs() != ACTION_DIM {
+    let width = feature_count(config.encoder_version)
+        .ok_or(DistillError::EncoderVersion(config.encoder_version))?;
+    // An actor made for an older encoder, whose features are a prefix of this one's, starts
+    // with zero weights on the new ones.
+    let widened = start.widen_inputs(width);
+    let start = widened.as_ref().unwrap_or(start);
+    if start.inputs() != width || start.outputs() != ACTION_DIM {
         return Err(DistillError::Shape {
             inputs: start.inputs(),
             outputs: start.outputs(),
+            encoder_version: config.encoder_version,
+            features: width,
         });
     }
     let teach_list: Vec<EvolutionScenario> = config.teach.iter().map(|t| t.scenario()).collect();
@@ -530,6 +550,8 @@ fn train_round(
         })
         .collect();
     let total = (counts.iter().sum::<usize>() * ACTION_DIM) as f32;
+    // Pools hold the whole encoding; the student reads its prefix.
+    let width = student.inputs();
     let mut tape = Tape::default();
     let mut obs = Vec::new();
     let mut targets = Vec::new();
@@ -545,7 +567,7 @@ fn train_round(
             targets.clear();
             for _ in 0..count {
                 let j = rng.random_range(0..pool.len());
-                obs.extend_from_slice(&pool.obs[j * FEATURES..(j + 1) * FEATURES]);
+                obs.extend_from_slice(&pool.obs[j * FEATURES..j * FEATURES + width]);
                 targets.extend_from_slice(&pool.actions[j * ACTION_DIM..(j + 1) * ACTION_DIM]);
             }
             student.forward(task, &obs, count, &mut tape);
@@ -606,7 +628,10 @@ mod tests {
     fn error(actor: &MultiTaskMlp, task: Task, pool: &Pool) -> f32 {
         let mut sum = 0.0;
         for j in 0..pool.len() {
-            let y = actor.predict(task.index(), &pool.obs[j * FEATURES..(j + 1) * FEATURES]);
+            let y = actor.predict(
+                task.index(),
+                &pool.obs[j * FEATURES..j * FEATURES + actor.inputs()],
+            );
             for (k, v) in y.iter().enumerate() {
                 let t = pool.actions[j * ACTION_DIM + k];
                 sum += (v - t) * (v - t);
@@ -713,5 +738,41 @@ mod tests {
         };
         let e = distill(&start, &bad, |_| {}).unwrap_err().to_string();
         assert!(e.contains("grazing"), "{e}");
+    }
+
+    #[test]
+    fn an_older_encoders_actor_is_widened_and_a_wider_one_refused() {
+        use skyherd_onboard::obs::V3_FEATURES;
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let v3 = MultiTaskMlp::new(2, V3_FEATURES, 32, 1, 3, Activation::Tanh, &mut rng);
+        let config = DistillConfig {
+            rounds: 1,
+            updates_per_round: 20,
+            ..tiny_config()
+        };
+        // For encoder v4 the student reads all features; for v3 it stays as narrow as it was.
+        let v4_student = distill(&v3, &config, |_| {}).unwrap().actor;
+        assert_eq!(v4_student.inputs(), FEATURES);
+        let v3_config = DistillConfig {
+            encoder_version: 3,
+            ..config.clone()
+        };
+        assert_eq!(
+            distill(&v3, &v3_config, |_| {}).unwrap().actor.inputs(),
+            V3_FEATURES
+        );
+        let e = distill(&tiny(), &v3_config, |_| {}).unwrap_err().to_string();
+        assert!(e.contains("51 inputs") && e.contains("v3 gives 46"), "{e}");
+        let e = distill(
+            &v3,
+            &DistillConfig {
+                encoder_version: 9,
+                ..config
+            },
+            |_| {},
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("encoder version 9"), "{e}");
     }
 }

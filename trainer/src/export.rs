@@ -5,7 +5,7 @@
 
 use skyherd_model::{Dense as ModelDense, FloatActor, ModelMeta, QuantizeError, Task, quantize};
 use skyherd_onboard::actor::Actor;
-use skyherd_onboard::obs::{ENCODER_VERSION, FEATURES};
+use skyherd_onboard::obs::{FEATURES, version_for};
 use skyherd_sim::{Env, EnvError, run_episode};
 use thiserror::Error;
 
@@ -26,6 +26,9 @@ pub enum ExportError {
     /// A calibration rollout failed.
     #[error("calibration rollout: {0}")]
     Env(#[from] EnvError),
+    /// The actor's input width is no encoder version's feature count.
+    #[error("the actor reads {0} inputs, which no encoder version this build serves gives")]
+    Width(usize),
 }
 
 fn to_model_dense(d: &Dense) -> ModelDense {
@@ -97,14 +100,17 @@ pub fn export(
     max_speed: f32,
     calibration: &[(Task, [f32; FEATURES])],
 ) -> Result<Vec<u8>, ExportError> {
+    // The model declares the encoder its input width belongs to; an actor made for an older
+    // encoder is calibrated on the prefix of each observation that is its encoding.
+    let width = actor.inputs().min(FEATURES);
     let meta = ModelMeta {
-        encoder_version: ENCODER_VERSION,
+        encoder_version: version_for(width).ok_or(ExportError::Width(actor.inputs()))?,
         max_speed,
     };
     let bytes = quantize(
         &to_float_actor(actor),
         meta,
-        calibration.iter().map(|(t, f)| (*t, &f[..])),
+        calibration.iter().map(|(t, f)| (*t, &f[..width])),
     )
     .map_err(ExportError::Quantize)?;
     Actor::from_bytes(&bytes).map_err(ExportError::Load)?;
@@ -181,5 +187,33 @@ mod tests {
         let p = parity(&actor, &bytes, &obs).expect("parity");
         eprintln!("{p:?}");
         assert!(p.rms_component < 0.05, "{p:?}");
+    }
+
+    #[test]
+    fn an_actor_for_encoder_v3_exports_as_a_v3_model() {
+        // mtddpg-v1 and -v2 read v3's 46 features; re-exported, they must say so.
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(6);
+        let actor = MultiTaskMlp::new(
+            2,
+            skyherd_onboard::obs::V3_FEATURES,
+            16,
+            1,
+            3,
+            Activation::Tanh,
+            &mut rng,
+        );
+        let obs = record_observations(&actor, &calibration_scenarios()[..2], 1, 5, 20, 1)
+            .expect("rollouts");
+        let bytes = export(&actor, 5.0, &obs).expect("export");
+        let model = skyherd_model::decode(&bytes).expect("decodes");
+        assert_eq!(
+            (model.encoder_version, model.features),
+            (3, skyherd_onboard::obs::V3_FEATURES)
+        );
+        let p = parity(&actor, &bytes, &obs).expect("parity");
+        assert!(p.rms_component < 0.05, "{p:?}");
+        // No encoder gives 40 features.
+        let odd = MultiTaskMlp::new(2, 40, 8, 1, 3, Activation::Tanh, &mut rng);
+        assert!(matches!(export(&odd, 5.0, &obs), Err(ExportError::Width(40))));
     }
 }

@@ -126,6 +126,29 @@ impl MultiTaskMlp {
             .chain(self.task_outputs.iter_mut())
     }
 
+    /// The same network reading `inputs` inputs, the new ones appended with zero weights: its
+    /// outputs do not change, and training can then learn to use them. `None` if `inputs` is
+    /// fewer than it reads now.
+    pub fn widen_inputs(&self, inputs: usize) -> Option<MultiTaskMlp> {
+        let old = self.inputs();
+        if inputs < old {
+            return None;
+        }
+        let mut wide = self.clone();
+        for layer in &mut wide.task_inputs {
+            let mut weights = vec![0.0; inputs * layer.outputs];
+            for (row, old_row) in weights
+                .chunks_exact_mut(inputs)
+                .zip(layer.weights.chunks_exact(old))
+            {
+                row[..old].copy_from_slice(old_row);
+            }
+            layer.weights = weights;
+            layer.inputs = inputs;
+        }
+        Some(wide)
+    }
+
     /// The same shape with every parameter zero: a gradient accumulator.
     pub fn zeros_like(&self) -> MultiTaskMlp {
         let mut z = self.clone();
@@ -259,6 +282,22 @@ mod tests {
     use super::*;
     use rand::SeedableRng;
     use rand_chacha::ChaCha8Rng;
+
+    #[test]
+    fn widening_adds_inputs_that_change_nothing_until_trained() {
+        let mut rng = ChaCha8Rng::seed_from_u64(4);
+        let net = MultiTaskMlp::new(2, 5, 8, 1, 3, Activation::Tanh, &mut rng);
+        let wide = net.widen_inputs(7).expect("wider");
+        assert_eq!((wide.inputs(), wide.hidden(), wide.outputs()), (7, 8, 3));
+        let x = [0.3, -0.2, 0.9, 0.1, -0.7];
+        for task in 0..2 {
+            let mut long = x.to_vec();
+            long.extend([5.0, -9.0]);
+            assert_eq!(wide.predict(task, &long), net.predict(task, &x));
+        }
+        assert_eq!(net.widen_inputs(5).as_ref(), Some(&net));
+        assert!(net.widen_inputs(4).is_none());
+    }
 
     /// Checks every parameter's and every input's gradient of `L = sum c * output` against
     /// central differences, for each task.

@@ -13,7 +13,8 @@ use crate::network::MultiTaskMlp;
 
 impl Infer for MultiTaskMlp {
     fn infer(&self, task: Task, features: &[f32; FEATURES]) -> [f32; 3] {
-        let y = self.predict(task.index(), features);
+        // An actor made for an older encoder reads the prefix that is its encoding.
+        let y = self.predict(task.index(), &features[..self.inputs().min(FEATURES)]);
         [y[0], y[1], y[2]]
     }
 }

@@ -13,7 +13,7 @@ use rand::Rng;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use skyherd_model::Task;
-use skyherd_onboard::obs::FEATURES;
+use skyherd_onboard::obs::{FEATURES, version_for};
 
 use skyherd_model::format::WeightWidth;
 use skyherd_model::{ModelMeta, quantize_model};
@@ -95,14 +95,16 @@ pub fn finetune(
 ) -> MultiTaskMlp {
     // The grids are the quantizer's own, chosen on the teacher: the student learns to live with
     // exactly the rounding the export will apply.
+    // An actor made for an older encoder reads the prefix of each observation.
+    let width = teacher.inputs().min(FEATURES);
     let meta = ModelMeta {
-        encoder_version: ENCODER_VERSION,
+        encoder_version: version_for(width).unwrap_or(ENCODER_VERSION),
         max_speed: 1.0,
     };
     let Ok(plan) = quantize_model(
         &to_float_actor(teacher),
         meta,
-        observations.iter().map(|(t, f)| (*t, &f[..])),
+        observations.iter().map(|(t, f)| (*t, &f[..width])),
     ) else {
         return teacher.clone();
     };
@@ -127,7 +129,7 @@ pub fn finetune(
         by_task[t]
             .0
             .extend(f.iter().zip(&grids).map(|(&x, &g)| round_input(x, g)));
-        teacher.forward(t, f, 1, &mut tape);
+        teacher.forward(t, &f[..width], 1, &mut tape);
         by_task[t].1.extend_from_slice(tape.output());
     }
     let mut student = teacher.clone();
@@ -153,7 +155,7 @@ pub fn finetune(
             target.clear();
             for _ in 0..config.batch {
                 let i = rng.random_range(0..n);
-                x.extend_from_slice(&inputs[i * FEATURES..(i + 1) * FEATURES]);
+                x.extend_from_slice(&inputs[i * width..(i + 1) * width]);
                 target.extend_from_slice(&actions[i * outputs..(i + 1) * outputs]);
             }
             q.forward_rounding(t, &x, config.batch, &mut tape, &hidden_steps);

@@ -78,6 +78,11 @@ impl ReplayBuffer {
         self.len == 0
     }
 
+    /// Width of the stored observations.
+    pub fn obs_dim(&self) -> usize {
+        self.obs_dim
+    }
+
     /// Adds a transition, overwriting the oldest when full.
     pub fn push(
         &mut self,

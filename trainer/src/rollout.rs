@@ -252,15 +252,24 @@ impl Rollouts {
                 if before_frames[h].is_none() || slot.frames[h].is_none() {
                     continue; // an observation the encoder refused carries no transition
                 }
+                // A buffer as wide as an older encoder's features keeps that prefix.
+                let w = replay[task].obs_dim();
                 replay[task].push(
-                    &before[h],
+                    &before[h][..w],
                     &slot_actions[h],
                     r,
-                    &slot.features[h],
+                    &slot.features[h][..w],
                     out.terminated,
                 );
                 if let Some(d) = demos.as_deref_mut() {
-                    d[task].push(&before[h], &slot_actions[h], r, &slot.features[h], false);
+                    let w = d[task].obs_dim();
+                    d[task].push(
+                        &before[h][..w],
+                        &slot_actions[h],
+                        r,
+                        &slot.features[h][..w],
+                        false,
+                    );
                 }
             }
             if out.terminated || out.truncated {
@@ -297,7 +306,7 @@ impl Rollouts {
                         if s.draw.task == task {
                             for (h, f) in s.features.iter().enumerate() {
                                 rows.push((i, h));
-                                input.extend_from_slice(f);
+                                input.extend_from_slice(&f[..actor.inputs()]);
                             }
                         }
                     }

@@ -24,7 +24,7 @@ use std::time::Instant;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use skyherd_model::Task;
-use skyherd_onboard::obs::FEATURES;
+use skyherd_onboard::obs::{FEATURES, feature_count};
 use skyherd_sim::EnvError;
 use skyherd_sim::task::task_name;
 use thiserror::Error;
@@ -241,10 +241,10 @@ fn sample_per_task(
     }
 }
 
-fn new_buffers(capacity: usize) -> Vec<ReplayBuffer> {
+fn new_buffers(width: usize, capacity: usize) -> Vec<ReplayBuffer> {
     Task::ALL
         .iter()
-        .map(|_| ReplayBuffer::new(FEATURES, ACTION_DIM, capacity))
+        .map(|_| ReplayBuffer::new(width, ACTION_DIM, capacity))
         .collect()
 }
 
@@ -555,7 +555,7 @@ fn train_in_pool(
         Some(c) => (c.agent, c.progress),
         None => (
             Agent::new(
-                FEATURES,
+                feature_count(config.encoder_version).unwrap_or(FEATURES),
                 Task::COUNT,
                 config.network,
                 config.ddpg,
@@ -573,13 +573,15 @@ fn train_in_pool(
             .wrapping_add(3),
     );
     let eval_scenarios = config.eval.scenario_list();
+    // As wide as the actor's input (a resumed actor keeps the width it was made with).
+    let width = agent.actor.inputs();
     let mut run = Run {
         config,
         agent,
         progress,
         rng,
-        replay: new_buffers(config.training.replay_capacity),
-        demos: new_buffers(config.training.replay_capacity),
+        replay: new_buffers(width, config.training.replay_capacity),
+        demos: new_buffers(width, config.training.replay_capacity),
         log: CsvLog::open(&dir.join("log.csv"))?,
         started: Instant::now(),
         wall_offset: progress.wall_time_s,

@@ -46,7 +46,7 @@ struct Cli {
     #[arg(long)]
     seed: Option<u64>,
     /// The trained model the drones fly.
-    #[arg(long, default_value = "models/mtddpg-v1.skym")]
+    #[arg(long, default_value = "models/mtddpg-v3.skym")]
     model: PathBuf,
     /// Output folder.
     #[arg(long, default_value = "out/mission")]
