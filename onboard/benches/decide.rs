@@ -1,8 +1,8 @@
 //! One drone decision on the host: `obs::encode` + `Actor::infer` for N = 16, 256, 1024 targets,
 //! with M = 4 herders and with the adaptive M = 2^floor(log2(N) / 2). Checks zero heap use with
-//! a counting allocator. Model: the shipped `models/mtddpg-v1.skym` (F = 46, H = 128, S = 1),
-//! what flies; inference alone also for a seeded F = 46, H = 64, S = 2 model (the timing does
-//! not depend on the weights, only on the shape).
+//! a counting allocator. Model: the mission's `models/mtddpg-v3.skym` (encoder v4, F = 51,
+//! H = 128, S = 1), what flies; inference alone also for a seeded F = 51, H = 64, S = 2 model (the
+//! timing does not depend on the weights, only on the shape).
 #![allow(missing_docs)]
 // The counting allocator that proves "zero heap" must implement `GlobalAlloc`, an unsafe trait;
 // it only forwards to `System`.
@@ -73,9 +73,9 @@ fn input(w: &World) -> ObsInput<'_> {
     }
 }
 
-/// The shipped model file.
+/// The mission's model file.
 fn shipped_model() -> Vec<u8> {
-    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../models/mtddpg-v1.skym");
+    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../models/mtddpg-v3.skym");
     std::fs::read(path).unwrap_or_else(|e| panic!("{path}: {e}"))
 }
 

@@ -563,7 +563,10 @@ pub fn encode(input: &ObsInput<'_>, out: &mut [f32; FEATURES]) -> Result<LocalFr
         let margin = RING_WALL_MARGIN * input.goal_radius;
         let inside = |p: [f32; 2]| {
             let clamp = |x: f32, size: f32| {
-                x.clamp(smaller(margin, 0.5 * size), larger(size - margin, 0.5 * size))
+                x.clamp(
+                    smaller(margin, 0.5 * size),
+                    larger(size - margin, 0.5 * size),
+                )
             };
             [clamp(p[0], input.area[0]), clamp(p[1], input.area[1])]
         };
@@ -941,7 +944,10 @@ mod tests {
         let herders = [[60.0, 90.0, 2.0]];
         let targets = scatter(40, 13, [150.0, 150.0], 20.0);
         let (f, _) = encode_ok(&input(&herders, &targets[..40], 0));
-        assert!((f[46] - f[17]).abs() < 1e-4 && (f[47] - f[18]).abs() < 1e-4, "{f:?}");
+        assert!(
+            (f[46] - f[17]).abs() < 1e-4 && (f[47] - f[18]).abs() < 1e-4,
+            "{f:?}"
+        );
         assert!((f[48] - f[46]).abs() < 1e-6 && (f[49] - f[47]).abs() < 1e-6);
         assert_eq!(f[50], 0.0);
     }
@@ -955,9 +961,8 @@ mod tests {
             let a = 0.9 * k as f32 + 0.3 * (k * k) as f32;
             [400.0 + 70.0 * cosf(a), 380.0 + 70.0 * sinf(a), 2.0]
         });
-        let mut angles: [f32; 6] = core::array::from_fn(|own| {
-            encode_ok(&input(&herders, &targets, own)).0[50] * PI
-        });
+        let mut angles: [f32; 6] =
+            core::array::from_fn(|own| encode_ok(&input(&herders, &targets, own)).0[50] * PI);
         angles.sort_by(f32::total_cmp);
         for pair in angles.windows(2) {
             assert!((pair[1] - pair[0] - TAU / 6.0).abs() < 1e-4, "{angles:?}");
@@ -970,7 +975,11 @@ mod tests {
         let v = [f[i], f[i + 1]];
         let c = sqrtf(v[0] * v[0] + v[1] * v[1]);
         let d = libm::expf(c) - 1.0;
-        let local = if c > 0.0 { [v[0] * d / c, v[1] * d / c] } else { v };
+        let local = if c > 0.0 {
+            [v[0] * d / c, v[1] * d / c]
+        } else {
+            v
+        };
         let w = frame.to_world(local);
         [own[0] + w[0] * 45.0, own[1] + w[1] * 45.0]
     }
@@ -1000,14 +1009,16 @@ mod tests {
         // A flock against the west wall: its ring would reach past the wall; the slots are kept
         // RING_WALL_MARGIN inside, as the rule keeps its herders.
         let targets = scatter(64, 23, [30.0, 250.0], 25.0);
-        let herders: [[f32; 3]; 8] =
-            core::array::from_fn(|k| [80.0, 150.0 + 25.0 * k as f32, 2.0]);
+        let herders: [[f32; 3]; 8] = core::array::from_fn(|k| [80.0, 150.0 + 25.0 * k as f32, 2.0]);
         for own in 0..8 {
             let mut i = input(&herders, &targets, own);
             i.goal = [450.0, 250.0];
             let (f, frame) = encode_ok(&i);
             let x = world_point(&f, 46, &frame, herders[own])[0];
-            assert!(x >= RING_WALL_MARGIN * 45.0 - 1e-2, "drone {own}: slot at x = {x}");
+            assert!(
+                x >= RING_WALL_MARGIN * 45.0 - 1e-2,
+                "drone {own}: slot at x = {x}"
+            );
         }
     }
 }

@@ -295,7 +295,11 @@ fn model_for(encoder_version: u16, features: usize) -> Vec<u8> {
     };
     let mut rng = SplitMix64::new(21);
     let cal: Vec<Vec<f32>> = (0..64)
-        .map(|_| (0..features).map(|_| rng.uniform(-2.0, 2.0) as f32).collect())
+        .map(|_| {
+            (0..features)
+                .map(|_| rng.uniform(-2.0, 2.0) as f32)
+                .collect()
+        })
         .collect();
     let meta = ModelMeta {
         encoder_version,

@@ -761,7 +761,9 @@ mod tests {
             distill(&v3, &v3_config, |_| {}).unwrap().actor.inputs(),
             V3_FEATURES
         );
-        let e = distill(&tiny(), &v3_config, |_| {}).unwrap_err().to_string();
+        let e = distill(&tiny(), &v3_config, |_| {})
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("51 inputs") && e.contains("v3 gives 46"), "{e}");
         let e = distill(
             &v3,

@@ -214,6 +214,9 @@ mod tests {
         assert!(p.rms_component < 0.05, "{p:?}");
         // No encoder gives 40 features.
         let odd = MultiTaskMlp::new(2, 40, 8, 1, 3, Activation::Tanh, &mut rng);
-        assert!(matches!(export(&odd, 5.0, &obs), Err(ExportError::Width(40))));
+        assert!(matches!(
+            export(&odd, 5.0, &obs),
+            Err(ExportError::Width(40))
+        ));
     }
 }
