@@ -613,9 +613,20 @@ mod tests {
 
     #[test]
     fn the_shipped_config_file_spells_out_the_defaults() {
+        // All but the encoder: mtddpg-v1 reads encoder v3's features, new runs v4's.
         let text = include_str!("../configs/mtddpg-v1.toml");
         let file = TrainConfig::from_toml_str(text).expect("shipped config parses");
-        assert_eq!(file, TrainConfig::default());
+        assert_eq!(file.encoder_version, 3);
+        assert_eq!(
+            file,
+            TrainConfig {
+                encoder_version: 3,
+                ..TrainConfig::default()
+            }
+        );
+        let bad = text.replace("encoder_version = 3", "encoder_version = 2");
+        let e = TrainConfig::from_toml_str(&bad).unwrap_err().to_string();
+        assert!(e.contains("encoder_version"), "{e}");
     }
 
     #[test]

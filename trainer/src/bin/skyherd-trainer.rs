@@ -408,14 +408,18 @@ fn main() -> Result<()> {
                 "| scenario | method | episodes | success | time (s) | time / bound | path (m) |"
             );
             println!("|---|---|---|---|---|---|---|");
+            // Rows are labelled with the model file's name (`mtddpg-v3` for models/mtddpg-v3.skym).
+            let name = model
+                .file_stem()
+                .map_or_else(|| "model".to_owned(), |s| s.to_string_lossy().into_owned());
             pool.install(|| -> Result<()> {
                 let rows =
                     evaluate_flat(&scenarios, episodes, seed_base, || ActorPolicy::new(actor))?;
-                print!("{}", markdown_table("mtddpg-v1 (quantized)", &rows));
+                print!("{}", markdown_table(&format!("{name} (quantized)"), &rows));
                 if let Some(float) = &float_actor {
                     let rows =
                         evaluate_flat(&scenarios, episodes, seed_base, || ActorPolicy::new(float))?;
-                    print!("{}", markdown_table("mtddpg-v1 (float)", &rows));
+                    print!("{}", markdown_table(&format!("{name} (float)"), &rows));
                 }
                 if baselines {
                     for method in Method::ALL {
