@@ -925,6 +925,33 @@ mod tests {
     }
 
     #[test]
+    fn extreme_finite_worlds_encode_without_panicking() {
+        // Validation lets any finite world through; squares of huge coordinates overflow to
+        // infinity, and the ring's clamp, trigonometry and ranks must take that (and
+        // coincident drones and targets) without a panic.
+        let values = [0.0, 1e-30, 0.05, 1.0, 500.0, 1e19, 3e38, -3e38];
+        for (k, &a) in values.iter().enumerate() {
+            for &b in &values {
+                let herders = [[a, b, 2.0], [a, b, 2.0], [b, a, -1e30]];
+                let targets = [[a, a], [b, b], [a, b]];
+                for own in 0..3 {
+                    let i = ObsInput {
+                        own_index: own,
+                        herders: &herders,
+                        targets: &targets,
+                        goal: [b, a],
+                        goal_radius: [0.05, 1.0, 3e38][k % 3],
+                        area: [500.0, [1e-30, 3e38][k % 2], 10.0],
+                        max_speed: 5.0,
+                    };
+                    let mut out = [0.0; FEATURES];
+                    let _ = encode(&i, &mut out);
+                }
+            }
+        }
+    }
+
+    #[test]
     fn octants_cover_the_plane() {
         let mut seen = [false; 8];
         for k in 0..16 {
