@@ -600,6 +600,60 @@ mod tests {
         }
     }
 
+    /// The onboard encoder's ring features (v4, 46-50) are this rule's geometry: where no target
+    /// straggles, every herder heads where feature 48-49 (the way to its slot) points, so a
+    /// policy can learn the rule from them. Checked with the ring part-way closed, so the arc,
+    /// the goalward shift, the detour round the flock and the wall margin all count.
+    #[test]
+    fn the_encoders_ring_features_point_where_enclose_herders_go() {
+        use skyherd_onboard::obs::{FEATURES, RING_ARC, RING_SHIFT, RING_WALL_MARGIN, RING_WRAP};
+        // The constants are the rule's, to f32 precision.
+        assert!((f64::from(RING_ARC) - STROMBOM_ARC).abs() < 1e-6);
+        assert!((f64::from(RING_WRAP) - ENCLOSE_WRAP_R).abs() < 1e-6);
+        assert!((f64::from(RING_SHIFT) - ENCLOSE_SHIFT_R).abs() < 1e-6);
+        let margin = Method::Enclose.wall_margin_r();
+        assert!((f64::from(RING_WALL_MARGIN) - margin).abs() < 1e-6);
+
+        let mut env = Env::new(Scenario {
+            targets: 128,
+            herders: HerderCount::Fixed(12),
+            ..Scenario::paper_drive().without_noise()
+        })
+        .unwrap();
+        let mut world = env.reset(5).clone();
+        let g = world.goal.center;
+        let r = world.goal.radius;
+        // A flock 1.2 goal radii from the goal (the arc 40 % closed), no target beyond 40 m of
+        // its centroid (Strömbom's straggler distance at N = 128 is 59 m): every herder drives.
+        let away = unit([250.0 - g[0], 250.0 - g[1]]);
+        let centre = [g[0] + 1.2 * r * away[0], g[1] + 1.2 * r * away[1]];
+        for (j, t) in world.targets.iter_mut().enumerate() {
+            let a = j as f64 * 0.618 * std::f64::consts::TAU;
+            let rho = 40.0 * ((j % 8) as f64 + 1.0) / 8.0;
+            *t = [centre[0] + rho * a.cos(), centre[1] + rho * a.sin()];
+        }
+        let mut rule = RulePolicy::new(Method::Enclose);
+        let mut buffers = crate::obs::EncoderBuffers::default();
+        buffers.fill(&world);
+        let mut features = [0.0f32; FEATURES];
+        let mut compared = 0;
+        for h in 0..world.herders.len() {
+            let v = rule.act(&world, h);
+            assert!(rule.pushed[h].is_none(), "herder {h} collects");
+            let speed = v[0].hypot(v[1]);
+            if speed < 1e-3 {
+                continue; // already in its slot
+            }
+            let frame = buffers.encode(h, &mut features).unwrap();
+            let way = frame.to_world([features[48], features[49]]);
+            let way = [f64::from(way[0]), f64::from(way[1])];
+            let cos = (v[0] * way[0] + v[1] * way[1]) / (speed * way[0].hypot(way[1]));
+            assert!(cos > 0.9999, "herder {h}: rule {v:?}, encoder way {way:?}");
+            compared += 1;
+        }
+        assert!(compared >= 10, "{compared} herders compared");
+    }
+
     /// The reason the rule exists: with the adaptive 16 herders, 256 targets are driven into the
     /// goal, where the plain Strömbom rule (its driving arc never closes) fails.
     #[test]
