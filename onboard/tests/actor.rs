@@ -240,43 +240,14 @@ fn saturates_at_extremes_without_failing() {
 
 #[test]
 fn encoder_mismatch_is_an_error() {
-    let shape = ActorShape {
-        features: FEATURES,
-        hidden: 8,
-        shared_layers: 1,
-    };
-    let calibration = [[0.5f32; FEATURES]];
-    let make = |encoder_version| {
-        let meta = ModelMeta {
-            encoder_version,
-            max_speed: 5.0,
-        };
-        let cal = calibration.iter().map(|f| (Task::Driving, &f[..]));
-        quantize(&FloatActor::random(shape, 1), meta, cal).unwrap()
-    };
-    let bytes = make(ENCODER_VERSION + 1);
+    let bytes = model_for(ENCODER_VERSION + 1, FEATURES);
     assert!(matches!(
         Actor::from_bytes(&bytes),
         Err(FormatError::EncoderMismatch { .. })
     ));
-    assert!(Actor::from_bytes(&make(ENCODER_VERSION)).is_ok());
+    assert!(Actor::from_bytes(&model_for(ENCODER_VERSION, FEATURES)).is_ok());
     // A model for another feature count is refused too.
-    let other = ActorShape {
-        features: FEATURES - 1,
-        ..shape
-    };
-    let cal = [[0.5f32; FEATURES - 1]];
-    let meta = ModelMeta {
-        encoder_version: ENCODER_VERSION,
-        max_speed: 5.0,
-    };
-    let bytes = quantize(
-        &FloatActor::random(other, 1),
-        meta,
-        cal.iter().map(|f| (Task::Driving, &f[..])),
-    )
-    .unwrap();
-    let e = Actor::from_bytes(&bytes).unwrap_err();
+    let e = Actor::from_bytes(&model_for(ENCODER_VERSION, FEATURES - 1)).unwrap_err();
     assert_eq!(
         e,
         FormatError::EncoderMismatch {

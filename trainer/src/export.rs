@@ -102,9 +102,9 @@ pub fn export(
 ) -> Result<Vec<u8>, ExportError> {
     // The model declares the encoder its input width belongs to; an actor made for an older
     // encoder is calibrated on the prefix of each observation that is its encoding.
-    let width = actor.inputs().min(FEATURES);
+    let width = actor.inputs();
     let meta = ModelMeta {
-        encoder_version: version_for(width).ok_or(ExportError::Width(actor.inputs()))?,
+        encoder_version: version_for(width).ok_or(ExportError::Width(width))?,
         max_speed,
     };
     let bytes = quantize(
