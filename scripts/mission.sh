@@ -6,6 +6,5 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ./scripts/setup.sh
-cargo build --release --locked -p skyherd-sim -p skyherd-ground -p skyherd-onboard \
-  --features skyherd-onboard/std --bins
+cargo build --release --locked -p skyherd-sitl -p skyherd-ground -p skyherd-daemon --bins
 exec target/release/skyherd-sitl "$@"

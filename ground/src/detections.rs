@@ -198,7 +198,10 @@ mod tests {
             name: DETECTION_NAME.into(),
         });
         assert_eq!(assembler.push(&nan), None);
-        assert_eq!(assembler.push(&crate::link::command::gcs_heartbeat()), None);
+        assert_eq!(
+            assembler.push(&skyherd_link::command::gcs_heartbeat()),
+            None
+        );
         assert_eq!(assembler.ignored(), 2);
         let end = scan_messages(5e-6, &[]);
         let scan = assembler.push(&end[0]).unwrap();

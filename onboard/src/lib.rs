@@ -8,7 +8,8 @@
 //! * [`frame`]: simulator frame (z up) <-> MAVLink LOCAL_NED.
 //!
 //! `#![no_std]` without alloc; logging through `log`. Features (additive):
-//! * `std`: `std::error::Error` impls, the model crate's host tools, the daemon.
+//! * `std`: `std::error::Error` impls and the model crate's host tools. The companion-computer
+//!   daemon that flies this core is the `skyherd-daemon` crate.
 //!
 //! One decision, from bytes on the wire to a safe velocity:
 //!
@@ -45,8 +46,6 @@
 #![cfg_attr(not(feature = "std"), no_std)]
 
 pub mod actor;
-#[cfg(feature = "std")]
-pub mod daemon;
 pub mod frame;
 pub mod obs;
 pub mod safety;

@@ -42,7 +42,6 @@ pub mod plot;
 pub mod policy;
 pub mod reward;
 pub mod scenario;
-pub mod sitl;
 pub mod task;
 pub mod trace;
 pub mod world;

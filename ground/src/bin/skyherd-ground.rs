@@ -21,13 +21,13 @@ use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand, ValueEnum};
 use mavlink::dialects::common::MavMessage;
 use skyherd_ground::detections::{ScanAssembler, scan_ack};
-use skyherd_ground::link::codec::{Signing, SigningKey};
-use skyherd_ground::link::{GroundLink, LinkConfig};
+use skyherd_ground::fleet::{GroundLink, LinkConfig};
 use skyherd_ground::mission::{
     AbortReason, DroneReport, MissionAction, MissionControl, MissionPlan, Phase,
 };
 use skyherd_ground::tracking::{TrackedWorld, Tracker, TrackerConfig};
 use skyherd_ground::uplink::{SnapshotInputs, UplinkEncoder};
+use skyherd_link::{Signing, SigningKey};
 use skyherd_onboard::Task;
 use skyherd_onboard::wire::MissionAction as WireAction;
 

@@ -12,16 +12,17 @@ use mavlink::dialects::common::{
     COMMAND_ACK_DATA, HEARTBEAT_DATA, LOCAL_POSITION_NED_DATA, MavAutopilot, MavCmd, MavFrame,
     MavMessage, MavModeFlag, MavResult, MavState, MavTunnelPayloadType, MavType, TUNNEL_DATA,
 };
-use mavlink::{Connectable, MavConnection, MavHeader, SigningConfig, UdpConfig, UdpMode};
+use mavlink::{Connectable, MavConnection, MavHeader, UdpConfig, UdpMode};
+use skyherd_link::VELOCITY_ONLY_TYPE_MASK;
+use skyherd_link::signing::{SigningKey, signing_config};
 
-use super::core::{CoreConfig, CoreCounters, DaemonCore, Flavour, HoldReason, Status};
-use super::io::{
-    COMPONENT_ID, ClockMode, Daemon, LinkOptions, ShellCounters, VELOCITY_ONLY_TYPE_MASK,
-};
-use super::selftest::builtin_model;
-use crate::Task;
-use crate::actor::Actor;
-use crate::wire::{
+use crate::control::{CoreConfig, CoreCounters, DaemonCore, HoldReason, Status};
+use crate::io::{COMPONENT_ID, ClockMode, Daemon, LinkOptions, ShellCounters};
+use crate::selftest::builtin_model;
+use skyherd_link::Flavour;
+use skyherd_onboard::Task;
+use skyherd_onboard::actor::Actor;
+use skyherd_onboard::wire::{
     MAX_MESSAGE, MissionAction, MissionCommand, Uplink, WorldSnapshot, chunks, encode_uplink,
 };
 
@@ -55,7 +56,7 @@ fn udp_link(peer: Option<SocketAddr>, signing: Option<[u8; 32]>) -> (Link, Socke
     };
     let mut link = config.connect::<MavMessage>().unwrap();
     if let Some(key) = signing {
-        link.setup_signing(Some(SigningConfig::new(key, 0, true, false)));
+        link.setup_signing(Some(signing_config(&SigningKey(key), 0)));
     }
     (link, local)
 }

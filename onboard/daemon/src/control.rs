@@ -12,20 +12,21 @@
 //! once the stream has run for [`CoreConfig::stream_before_mode_ms`] asks for the autopilot's
 //! external-control mode (PX4 OFFBOARD, ArduPilot GUIDED). When the autopilot reports armed and
 //! in that mode, the core flies: world snapshot (own position replaced by the autopilot's, which
-//! is fresher, its height counted from the altitude band's floor) -> [`crate::obs::encode`] -> [`Policy::act`] ->
-//! [`crate::obs::LocalFrame::action_to_world`] -> [`crate::safety::check`] ->
-//! [`crate::frame::sim_to_ned`].
+//! is fresher, its height counted from the altitude band's floor) -> [`skyherd_onboard::obs::encode`] -> [`Policy::act`] ->
+//! [`skyherd_onboard::obs::LocalFrame::action_to_world`] -> [`skyherd_onboard::safety::check`] ->
+//! [`skyherd_onboard::frame::sim_to_ned`].
 //! It holds (zero-velocity setpoints) when the uplink is stale, when the autopilot link is lost,
 //! after an abort, and when the pilot takes control away; every hold names its [`HoldReason`].
 //! Holds with a fresh own position still pass through the safety rules, so a drone outside the
 //! geofence or below the altitude band is steered back in rather than frozen there.
 //!
 //! Uplink bytes arrive as TUNNEL payloads ([`DaemonCore::on_tunnel_payload`]): the
-//! [`wire`](crate::wire) reassembler turns chunks into [`Uplink`] messages; bad chunks are
+//! [`wire`](skyherd_onboard::wire) reassembler turns chunks into [`Uplink`] messages; bad chunks are
 //! counted and dropped.
 //!
 //! ```
-//! use skyherd_onboard::daemon::core::{CoreConfig, DaemonCore, Flavour, Millis, Policy, Status};
+//! use skyherd_daemon::control::{CoreConfig, DaemonCore, Millis, Policy, Status};
+//! use skyherd_link::Flavour;
 //! use skyherd_onboard::obs::FEATURES;
 //! use skyherd_onboard::wire::{MissionAction, MissionCommand, Uplink};
 //! use skyherd_onboard::Task;
@@ -56,13 +57,14 @@
 use std::fmt;
 
 use log::{info, warn};
+use skyherd_link::Flavour;
 
-use crate::Task;
-use crate::actor::Actor;
-use crate::frame::{ned_to_sim, sim_to_ned};
-use crate::obs::{self, FEATURES, ObsError, ObsInput};
-use crate::safety::{self, Limits, Reasons, Situation};
-use crate::wire::{
+use skyherd_onboard::Task;
+use skyherd_onboard::actor::Actor;
+use skyherd_onboard::frame::{ned_to_sim, sim_to_ned};
+use skyherd_onboard::obs::{self, FEATURES, ObsError, ObsInput};
+use skyherd_onboard::safety::{self, Limits, Reasons, Situation};
+use skyherd_onboard::wire::{
     MissionAction, MissionCommand, Reassembler, Uplink, WireError, WorldSnapshot, decode_uplink,
 };
 
@@ -75,43 +77,6 @@ impl Millis {
     /// Milliseconds from `earlier` to `self`, zero if `earlier` is later.
     pub fn since(self, earlier: Millis) -> u64 {
         self.0.saturating_sub(earlier.0)
-    }
-}
-
-/// Which autopilot family the daemon talks to; they name their external-control mode
-/// differently.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Flavour {
-    /// PX4: OFFBOARD, main mode 6 (HEARTBEAT `custom_mode` = 6 << 16).
-    Px4,
-    /// ArduPilot Copter: GUIDED, mode 4.
-    ArduPilot,
-}
-
-impl Flavour {
-    /// The custom main mode to request with `MAV_CMD_DO_SET_MODE` (param 2).
-    pub fn control_mode(self) -> u8 {
-        match self {
-            Flavour::Px4 => 6,
-            Flavour::ArduPilot => 4,
-        }
-    }
-
-    /// Whether a HEARTBEAT `custom_mode` says the autopilot is in the external-control mode.
-    pub fn is_control_mode(self, custom_mode: u32) -> bool {
-        match self {
-            // PX4 packs main mode in bits 16..24 and sub mode in bits 24..32.
-            Flavour::Px4 => (custom_mode >> 16) & 0xFF == u32::from(self.control_mode()),
-            Flavour::ArduPilot => custom_mode == u32::from(self.control_mode()),
-        }
-    }
-
-    /// Human name of the external-control mode, for logs.
-    pub fn control_mode_name(self) -> &'static str {
-        match self {
-            Flavour::Px4 => "OFFBOARD",
-            Flavour::ArduPilot => "GUIDED",
-        }
     }
 }
 
@@ -159,7 +124,7 @@ impl CoreConfig {
 /// The daemon flies [`Actor`] (quantized, from a model file); tests may use anything.
 pub trait Policy {
     /// Normalised action, each component in [-1, 1], in the encoder's
-    /// [`LocalFrame`](crate::obs::LocalFrame).
+    /// [`LocalFrame`](skyherd_onboard::obs::LocalFrame).
     fn act(&mut self, task: Task, features: &[f32; FEATURES]) -> [f32; 3];
 }
 
@@ -489,7 +454,7 @@ impl<P: Policy> DaemonCore<P> {
         }
     }
 
-    /// One uplink TUNNEL payload (a [`wire`](crate::wire) chunk). A chunk that completes a
+    /// One uplink TUNNEL payload (a [`wire`](skyherd_onboard::wire) chunk). A chunk that completes a
     /// message delivers it to [`on_uplink`](Self::on_uplink). Bad chunks and messages are
     /// counted, logged and dropped; the error says why.
     pub fn on_tunnel_payload(&mut self, now: Millis, chunk: &[u8]) -> Result<(), WireError> {
@@ -1195,7 +1160,7 @@ mod tests {
 
     #[test]
     fn tunnel_chunks_are_reassembled_and_bad_ones_counted() {
-        use crate::wire::{MAX_MESSAGE, chunks, encode_uplink};
+        use skyherd_onboard::wire::{MAX_MESSAGE, chunks, encode_uplink};
         let mut c = core(Flavour::Px4);
         let mut buffer = [0u8; MAX_MESSAGE];
         let bytes = encode_uplink(&snapshot(1), &mut buffer).unwrap();
@@ -1213,7 +1178,7 @@ mod tests {
 
     #[test]
     fn a_restarted_ground_is_heard_again_after_a_silence() {
-        use crate::wire::{MAX_MESSAGE, chunks, encode_uplink};
+        use skyherd_onboard::wire::{MAX_MESSAGE, chunks, encode_uplink};
         let mut buffer = [0u8; MAX_MESSAGE];
         let mut send = |c: &mut DaemonCore<TowardsGoal>, t: u64, id: u16, message: &Uplink| {
             let bytes = encode_uplink(message, &mut buffer).unwrap();
@@ -1260,8 +1225,8 @@ mod tests {
             }
             // Half of them look like chunks, to get past the magic and version checks.
             if i % 2 == 0 && len >= 2 {
-                payload[0] = crate::wire::CHUNK_MAGIC;
-                payload[1] = crate::wire::WIRE_VERSION;
+                payload[0] = skyherd_onboard::wire::CHUNK_MAGIC;
+                payload[1] = skyherd_onboard::wire::WIRE_VERSION;
             }
             let _ = c.on_tunnel_payload(Millis(10), &payload[..len]);
         }

@@ -12,7 +12,7 @@
 //! `now` in seconds (a simulated clock in lockstep SITL, or wall time in a daemon).
 //!
 //! ```no_run
-//! use skyherd_ground::link::{GroundLink, LinkConfig};
+//! use skyherd_ground::fleet::{GroundLink, LinkConfig};
 //! use std::time::Duration;
 //!
 //! let mut link = GroundLink::open("udpin:0.0.0.0:14550", LinkConfig::default()).unwrap();
@@ -27,8 +27,6 @@
 //! }
 //! ```
 
-pub mod codec;
-pub mod command;
 pub mod vehicle;
 
 use std::collections::BTreeMap;
@@ -40,16 +38,14 @@ use std::time::{Duration, Instant};
 use mavlink::dialects::common::{MavMessage, MavResult};
 use thiserror::Error;
 
-pub use codec::{Codec, CodecStats, Frame, Signing, SigningKey};
-pub use command::{CommandOutcome, CommandResult, FlightMode, PendingCommands};
+use skyherd_link::command;
+use skyherd_link::{
+    Codec, CodecStats, CommandOutcome, CommandResult, Frame, GROUND_COMPONENT_ID, GROUND_SYSTEM_ID,
+    PendingCommands, Signing,
+};
 pub use vehicle::{Fleet, LinkQuality, VehicleState};
 
 use crate::tlog::TlogWriter;
-
-/// MAVLink system id of the ground station.
-pub const GROUND_SYSTEM_ID: u8 = 255;
-/// MAVLink component id of a ground control station (MAV_COMP_ID_MISSIONPLANNER).
-pub const GROUND_COMPONENT_ID: u8 = 190;
 
 /// Where a link goes, in `mavlink::connect` syntax.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -583,6 +579,7 @@ fn send_udp(socket: &UdpSocket, bytes: &[u8], peer: SocketAddr) -> Result<(), Li
 #[cfg(test)]
 mod tests {
     use super::*;
+    use skyherd_link::FlightMode;
 
     #[test]
     fn address_strings() {

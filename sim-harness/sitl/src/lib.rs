@@ -1,4 +1,4 @@
-//! Software-in-the-loop pieces: mock autopilots speaking MAVLink 2 over UDP, a target
+//! skyherd-sitl: software-in-the-loop pieces: mock autopilots speaking MAVLink 2 over UDP, a target
 //! detection sensor, and link fault injection. Everything is driven by an explicit simulated
 //! clock (lockstep): whoever owns the loop steps the world, then each node with the same
 //! `now`.
@@ -13,7 +13,7 @@
 //! only in `skyherd_onboard::frame::{sim_to_ned, ned_to_sim}`.
 //!
 //! ```
-//! use skyherd_sim::sitl::{AutopilotConfig, AutopilotNode, MockAutopilot, NodeOptions};
+//! use skyherd_sitl::{AutopilotConfig, AutopilotNode, MockAutopilot, NodeOptions};
 //! use skyherd_onboard::frame::sim_to_ned;
 //!
 //! let start = sim_to_ned([10.0_f64, 20.0, 2.0]); // 10 m east, 20 m north, 2 m up
@@ -35,7 +35,7 @@ pub mod mission;
 pub mod node;
 pub mod sensor;
 
-pub use autopilot::{AutopilotConfig, Flavour, MockAutopilot, Rejections, Tick};
+pub use autopilot::{AutopilotConfig, MockAutopilot, Rejections, Tick};
 pub use faults::{DelayLine, FaultConfig, FaultPlan, FaultStats, FaultyUdp, Verdict};
 pub use node::{AutopilotNode, NodeOptions};
 pub use sensor::{DetectionSensor, SensorConfig, SensorError};

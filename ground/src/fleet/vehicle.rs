@@ -6,7 +6,7 @@ use std::collections::BTreeMap;
 use mavlink::MavHeader;
 use mavlink::dialects::common::{MavAutopilot, MavMessage, MavModeFlag, MavState, MavType};
 
-use super::command::FlightMode;
+use skyherd_link::FlightMode;
 
 /// Link quality of one vehicle, from MAVLink sequence numbers and arrival times.
 #[derive(Debug, Clone, Default, PartialEq)]

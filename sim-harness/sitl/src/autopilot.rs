@@ -4,7 +4,7 @@
 //! Frame: MAVLink LOCAL_NED (x north, y east, z down), metres and m/s; convert to the
 //! simulator frame only with `skyherd_onboard::frame`.
 //!
-//! Rules modelled (DESIGN.md section 5):
+//! Rules modelled (the PX4 and ArduPilot behaviour `ARCHITECTURE.md` lists):
 //! * PX4: OFFBOARD (custom_mode 6 << 16) is accepted only after velocity setpoints have
 //!   streamed at > 2 Hz for 1 s; in OFFBOARD, setpoints lost for > 1 s trigger the failsafe:
 //!   the mode drops to AUTO.LOITER (hold) and the vehicle stops.
@@ -15,44 +15,12 @@
 
 use mavlink::MavHeader;
 use mavlink::dialects::common::{
-    COMMAND_ACK_DATA, COMMAND_LONG_DATA, HEARTBEAT_DATA, LOCAL_POSITION_NED_DATA, MavAutopilot,
-    MavCmd, MavFrame, MavMessage, MavModeFlag, MavResult, MavState, MavSysStatusSensor, MavType,
+    COMMAND_ACK_DATA, COMMAND_LONG_DATA, HEARTBEAT_DATA, LOCAL_POSITION_NED_DATA, MavCmd, MavFrame,
+    MavMessage, MavModeFlag, MavResult, MavState, MavSysStatusSensor, MavType,
     SET_POSITION_TARGET_LOCAL_NED_DATA, SYS_STATUS_DATA,
 };
-use skyherd_ground::link::command::{FlightMode, VELOCITY_ONLY_TYPE_MASK};
-
-/// Which autopilot the mock imitates.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Flavour {
-    /// PX4: OFFBOARD, setpoint-stream precondition, 1 s loss failsafe.
-    Px4,
-    /// ArduPilot Copter: GUIDED, 3 s velocity timeout.
-    ArduPilot,
-}
-
-impl Flavour {
-    fn mav_autopilot(self) -> MavAutopilot {
-        match self {
-            Self::Px4 => MavAutopilot::MAV_AUTOPILOT_PX4,
-            Self::ArduPilot => MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA,
-        }
-    }
-
-    /// The mode that flies external velocity setpoints.
-    pub fn external_mode(self) -> FlightMode {
-        match self {
-            Self::Px4 => FlightMode::PX4_OFFBOARD,
-            Self::ArduPilot => FlightMode::ARDUPILOT_GUIDED,
-        }
-    }
-
-    fn hold_mode(self) -> FlightMode {
-        match self {
-            Self::Px4 => FlightMode::PX4_HOLD,
-            Self::ArduPilot => FlightMode::ARDUPILOT_LOITER,
-        }
-    }
-}
+use skyherd_link::Flavour;
+use skyherd_link::{FlightMode, VELOCITY_ONLY_TYPE_MASK};
 
 /// Configuration of one mock autopilot. Units: seconds, metres, m/s, percent.
 #[derive(Debug, Clone, PartialEq)]
@@ -501,7 +469,7 @@ impl MockAutopilot {
 mod tests {
     use super::*;
     use mavlink::dialects::common::{MavFrame, PositionTargetTypemask};
-    use skyherd_ground::link::command::{arm_disarm, set_mode, velocity_setpoint_ned};
+    use skyherd_link::command::{arm_disarm, set_mode, velocity_setpoint_ned};
 
     const H: MavHeader = MavHeader {
         system_id: 255,

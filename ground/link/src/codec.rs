@@ -11,11 +11,9 @@
 //! [`Signing::accept_unsigned`]. The signature timestamp comes from the `mavlink` crate (wall
 //! clock, 10 us units since 2015) as the protocol requires; replayed frames are rejected.
 
-use std::path::Path;
-
+use crate::signing::{Signing, signing_data};
 use mavlink::dialects::common::MavMessage;
 use mavlink::{MAVLinkV1MessageRaw, MAVLinkV2MessageRaw, MavHeader, MavlinkVersion, Message};
-use thiserror::Error;
 
 const STX_V2: u8 = 0xFD;
 const STX_V1: u8 = 0xFE;
@@ -25,79 +23,6 @@ const V2_OVERHEAD: usize = 12;
 const SIGNATURE_LEN: usize = 13;
 /// STX + 5 header bytes + 2 CRC bytes.
 const V1_OVERHEAD: usize = 8;
-
-/// A 32-byte MAVLink 2 signing key.
-#[derive(Clone, PartialEq, Eq)]
-pub struct SigningKey(pub [u8; 32]);
-
-impl std::fmt::Debug for SigningKey {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        // Never print key material.
-        f.write_str("SigningKey(..)")
-    }
-}
-
-/// Why a signing key file could not be used.
-#[derive(Debug, Error)]
-pub enum KeyFileError {
-    /// The file could not be read.
-    #[error("cannot read signing key file {path}: {source}")]
-    Io {
-        /// The file.
-        path: String,
-        /// The I/O error.
-        source: std::io::Error,
-    },
-    /// The file is neither 32 raw bytes nor 64 hex digits.
-    #[error("signing key file {path} must hold 32 raw bytes or 64 hex digits, found {len} bytes")]
-    BadLength {
-        /// The file.
-        path: String,
-        /// Its length in bytes (after trimming whitespace for the hex form).
-        len: usize,
-    },
-}
-
-impl SigningKey {
-    /// Read a key file: exactly 32 raw bytes, or 64 hex digits (whitespace around ignored).
-    ///
-    /// # Errors
-    /// [`KeyFileError`] when the file is unreadable or has the wrong length.
-    pub fn from_file(path: &Path) -> Result<Self, KeyFileError> {
-        let name = path.display().to_string();
-        let bytes = std::fs::read(path).map_err(|source| KeyFileError::Io {
-            path: name.clone(),
-            source,
-        })?;
-        if let Ok(key) = <[u8; 32]>::try_from(bytes.as_slice()) {
-            return Ok(Self(key));
-        }
-        let text = String::from_utf8_lossy(&bytes);
-        let hex = text.trim();
-        if hex.len() == 64 && hex.bytes().all(|b| b.is_ascii_hexdigit()) {
-            let mut key = [0u8; 32];
-            for (i, k) in key.iter_mut().enumerate() {
-                *k = u8::from_str_radix(&hex[2 * i..2 * i + 2], 16).unwrap_or(0);
-            }
-            return Ok(Self(key));
-        }
-        Err(KeyFileError::BadLength {
-            path: name,
-            len: hex.len(),
-        })
-    }
-}
-
-/// Signing policy of one link.
-#[derive(Debug, Clone)]
-pub struct Signing {
-    /// The shared secret.
-    pub key: SigningKey,
-    /// Link id written into outgoing signatures (distinguishes links sharing a key).
-    pub link_id: u8,
-    /// Accept unsigned incoming frames (for migration only; off on the drone links).
-    pub accept_unsigned: bool,
-}
 
 /// Counters of what the decoder saw. Everything but `frames` is a frame or byte dropped.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -180,10 +105,7 @@ impl Codec {
             system_id,
             component_id,
             sequence: 0,
-            signing: signing.map(|s| {
-                let config = mavlink::SigningConfig::new(s.key.0, s.link_id, true, false);
-                (mavlink::SigningData::from_config(config), s.accept_unsigned)
-            }),
+            signing: signing.map(|s| (signing_data(&s.key, s.link_id), s.accept_unsigned)),
             stats: CodecStats::default(),
             stream_tail: Vec::new(),
         }
@@ -349,6 +271,7 @@ enum Step {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::signing::{KeyFileError, SigningKey};
     use mavlink::dialects::common::{HEARTBEAT_DATA, MavAutopilot, MavModeFlag, MavState, MavType};
 
     fn heartbeat() -> MavMessage {

@@ -6,7 +6,7 @@
 //! 10 Hz, daemons answer each one):
 //! 1. every live autopilot node receives what arrived and flies its current setpoint;
 //! 2. the world advances one tick with the velocities the autopilots fly (herders first, as in
-//!    [`crate::world::advance`]), and each autopilot is told where the world put its drone;
+//!    [`skyherd_sim::world::advance`]), and each autopilot is told where the world put its drone;
 //! 3. on sensor ticks the detection sensor scans the targets and sends the scan (MAVLink
 //!    `DEBUG_VECT`, see `skyherd_ground::detections`) to the ground station, and the loop waits
 //!    (up to [`SitlConfig::lockstep_timeout`] of wall time) for the ground's acknowledgement
@@ -34,7 +34,7 @@ use std::thread;
 use std::time::{Duration, Instant};
 
 use skyherd_ground::detections::{acknowledged_scan, scan_messages};
-use skyherd_ground::link::codec::{Codec, Frame, Signing};
+use skyherd_link::{Codec, Frame, Signing};
 use skyherd_onboard::frame::{ned_to_sim, sim_to_ned};
 use thiserror::Error;
 
@@ -42,9 +42,9 @@ use super::autopilot::{AutopilotConfig, MockAutopilot};
 use super::faults::FaultConfig;
 use super::node::{AutopilotNode, NodeOptions};
 use super::sensor::{DetectionSensor, SensorConfig, SensorError};
-use crate::env::Env;
-use crate::scenario::{Scenario, ScenarioError};
-use crate::world::{StepScratch, World, WorldError, advance};
+use skyherd_sim::env::Env;
+use skyherd_sim::scenario::{Scenario, ScenarioError};
+use skyherd_sim::world::{StepScratch, World, WorldError, advance};
 
 /// System id of the tracking sensor on the fleet link.
 pub const SENSOR_SYSTEM_ID: u8 = 200;

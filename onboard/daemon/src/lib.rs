@@ -1,15 +1,16 @@
-//! The companion-computer daemon (feature `std`): a pure decision core and a thin I/O shell.
+//! skyherd-daemon: the companion-computer daemon, a pure decision core and a thin I/O shell
+//! around the onboard core (`skyherd_onboard`'s encoder, quantized actor and safety rules).
 //!
-//! * [`core`] takes explicit state and time (ground uplink, autopilot telemetry, the daemon's
+//! * [`control`] takes explicit state and time (ground uplink, autopilot telemetry, the daemon's
 //!   clock in milliseconds) and returns decisions: velocity setpoints in NED, autopilot commands,
-//!   and a [`core::Status`] saying what it does and why. No sockets, no clock.
+//!   and a [`control::Status`] saying what it does and why. No sockets, no clock.
 //! * [`io`] owns the sockets: MAVLink to the autopilot and to the ground station, signing
 //!   checks, heartbeats, and the two clocks (wall clock, or the simulator's `time_boot_ms` in
 //!   lockstep mode).
 //! * [`selftest`] exercises the core without sockets; `skyherd-onboard self-test` runs it.
 //!
 //! Frames: the core works in the simulator frame (x east, y north, z up, metres, m/s) and
-//! converts only at its edges through [`crate::frame`]; everything sent to or read from the
+//! converts only at its edges through [`skyherd_onboard::frame`]; everything sent to or read from the
 //! autopilot is MAVLink `LOCAL_NED`.
 //!
 //! # One daemon per drone
@@ -25,8 +26,9 @@
 //!
 //! ```no_run
 //! use skyherd_onboard::actor::Actor;
-//! use skyherd_onboard::daemon::core::{CoreConfig, DaemonCore, Flavour};
-//! use skyherd_onboard::daemon::io::{ClockMode, Daemon, LinkOptions};
+//! use skyherd_daemon::control::{CoreConfig, DaemonCore};
+//! use skyherd_link::Flavour;
+//! use skyherd_daemon::io::{ClockMode, Daemon, LinkOptions};
 //!
 //! let model = std::fs::read("models/herd.skym").unwrap();
 //! let actor = Actor::from_bytes(&model).unwrap();
@@ -46,7 +48,7 @@
 //! # drop(stop);
 //! ```
 
-pub mod core;
+pub mod control;
 pub mod io;
 pub mod selftest;
 

@@ -12,10 +12,11 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand, ValueEnum};
+use skyherd_daemon::control::{CoreConfig, DaemonCore};
+use skyherd_daemon::io::{ClockMode, Daemon, LinkOptions, parse_key};
+use skyherd_daemon::selftest;
+use skyherd_link::Flavour;
 use skyherd_onboard::actor::Actor;
-use skyherd_onboard::daemon::core::{CoreConfig, DaemonCore, Flavour};
-use skyherd_onboard::daemon::io::{ClockMode, Daemon, LinkOptions, parse_key};
-use skyherd_onboard::daemon::selftest;
 
 #[derive(Parser, Debug)]
 #[command(

@@ -6,65 +6,11 @@ use mavlink::dialects::common::{
     SET_POSITION_TARGET_LOCAL_NED_DATA,
 };
 
+pub use crate::flavour::FlightMode;
+
 /// SET_POSITION_TARGET_LOCAL_NED type_mask that keeps only the velocity (ignores position,
 /// acceleration, yaw and yaw rate): bits 0-2, 6-8, 10, 11.
 pub const VELOCITY_ONLY_TYPE_MASK: u16 = 0x0DC7;
-
-/// A flight mode in the autopilot's own numbering.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum FlightMode {
-    /// PX4: `custom_mode = main << 16 | sub << 24`.
-    Px4 {
-        /// Main mode (6 = OFFBOARD, 4 = AUTO).
-        main: u8,
-        /// Sub mode (AUTO: 3 = LOITER, i.e. hold).
-        sub: u8,
-    },
-    /// ArduPilot Copter: `custom_mode` is the mode number (4 = GUIDED, 5 = LOITER).
-    ArduPilot(u32),
-    /// Another autopilot: its raw `custom_mode`.
-    Other(u32),
-}
-
-impl FlightMode {
-    /// PX4 OFFBOARD (external setpoints).
-    pub const PX4_OFFBOARD: Self = Self::Px4 { main: 6, sub: 0 };
-    /// PX4 AUTO.LOITER: hold position.
-    pub const PX4_HOLD: Self = Self::Px4 { main: 4, sub: 3 };
-    /// ArduPilot GUIDED (external setpoints).
-    pub const ARDUPILOT_GUIDED: Self = Self::ArduPilot(4);
-    /// ArduPilot LOITER: hold position.
-    pub const ARDUPILOT_LOITER: Self = Self::ArduPilot(5);
-
-    /// The mode a heartbeat reports.
-    pub fn from_heartbeat(autopilot: MavAutopilot, custom_mode: u32) -> Self {
-        match autopilot {
-            MavAutopilot::MAV_AUTOPILOT_PX4 => Self::Px4 {
-                main: ((custom_mode >> 16) & 0xFF) as u8,
-                sub: (custom_mode >> 24) as u8,
-            },
-            MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA => Self::ArduPilot(custom_mode),
-            _ => Self::Other(custom_mode),
-        }
-    }
-
-    /// The heartbeat `custom_mode` of this mode.
-    pub fn custom_mode(self) -> u32 {
-        match self {
-            Self::Px4 { main, sub } => (u32::from(main) << 16) | (u32::from(sub) << 24),
-            Self::ArduPilot(mode) | Self::Other(mode) => mode,
-        }
-    }
-
-    /// The offboard/guided mode of an autopilot flavour (None for unknown flavours).
-    pub fn external_control(autopilot: MavAutopilot) -> Option<Self> {
-        match autopilot {
-            MavAutopilot::MAV_AUTOPILOT_PX4 => Some(Self::PX4_OFFBOARD),
-            MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA => Some(Self::ARDUPILOT_GUIDED),
-            _ => None,
-        }
-    }
-}
 
 /// A COMMAND_LONG to one system/component.
 pub fn command_long(

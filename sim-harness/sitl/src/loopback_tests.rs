@@ -5,9 +5,10 @@ use std::net::{SocketAddr, UdpSocket};
 use std::time::Duration;
 
 use mavlink::dialects::common::{MavCmd, MavResult};
-use skyherd_ground::link::codec::{Signing, SigningKey};
-use skyherd_ground::link::command::{arm_disarm, set_mode, velocity_setpoint_ned};
-use skyherd_ground::link::{CommandOutcome, FlightMode, GroundLink, LinkConfig};
+use skyherd_ground::fleet::{GroundLink, LinkConfig};
+use skyherd_link::command::{arm_disarm, set_mode, velocity_setpoint_ned};
+use skyherd_link::{CommandOutcome, FlightMode};
+use skyherd_link::{Signing, SigningKey};
 
 use super::{AutopilotConfig, AutopilotNode, FaultConfig, MockAutopilot, NodeOptions};
 
@@ -272,7 +273,7 @@ fn malformed_bytes_are_counted_and_dropped() {
     rig.step_until(|r| r.ground.fleet().get(1).is_some());
     let attacker = UdpSocket::bind("127.0.0.1:0").unwrap();
     let node_addr: SocketAddr = rig.node.local_addr().unwrap();
-    let mut codec = skyherd_ground::link::Codec::new(255, 190, None);
+    let mut codec = skyherd_link::Codec::new(255, 190, None);
     let good = codec.encode(&arm_disarm(1, 1, true));
     let mut bad_crc = good.clone();
     let n = bad_crc.len();

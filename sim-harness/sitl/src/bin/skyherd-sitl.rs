@@ -22,9 +22,9 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, Result, bail};
 use clap::Parser;
 use skyherd_sim::scenario::HerderCount;
-use skyherd_sim::sitl::FaultConfig;
-use skyherd_sim::sitl::mission::{Ending, SitlConfig, SitlWorld};
 use skyherd_sim::{Scenario, World};
+use skyherd_sitl::FaultConfig;
+use skyherd_sitl::mission::{Ending, SitlConfig, SitlWorld};
 
 #[derive(Parser, Debug)]
 #[command(

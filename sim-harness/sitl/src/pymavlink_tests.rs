@@ -12,15 +12,17 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
-use skyherd_ground::link::command::arm_disarm;
-use skyherd_ground::link::{CommandOutcome, FlightMode, GroundLink, LinkConfig};
+use skyherd_ground::fleet::{GroundLink, LinkConfig};
+use skyherd_link::command::arm_disarm;
+use skyherd_link::{CommandOutcome, FlightMode};
 
 use super::{AutopilotConfig, AutopilotNode, MockAutopilot, NodeOptions};
 
 fn workspace_root() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .parent()
-        .expect("sim-harness sits in the workspace")
+        .ancestors()
+        .nth(2)
+        .expect("sim-harness/sitl sits two levels down in the workspace")
         .to_path_buf()
 }
 

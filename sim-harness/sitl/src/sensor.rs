@@ -7,7 +7,7 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal, Poisson};
 use thiserror::Error;
 
-use crate::scenario::Scenario;
+use skyherd_sim::scenario::Scenario;
 
 /// Sensor model. Units: metres.
 #[derive(Debug, Clone, PartialEq)]

@@ -17,14 +17,15 @@ use std::fmt;
 
 use skyherd_model::{ActorShape, FloatActor, ModelMeta, quantize};
 
-use super::core::{
-    AutopilotCommand, CoreConfig, DaemonCore, Flavour, HoldReason, Millis, Policy, Status,
+use crate::control::{
+    AutopilotCommand, CoreConfig, DaemonCore, HoldReason, Millis, Policy, Status,
 };
-use crate::Task;
-use crate::actor::Actor;
-use crate::obs::{self, ENCODER_VERSION, FEATURES, ObsInput};
-use crate::safety::{self, Limits, Reasons, Situation};
-use crate::wire::{
+use skyherd_link::Flavour;
+use skyherd_onboard::Task;
+use skyherd_onboard::actor::Actor;
+use skyherd_onboard::obs::{self, ENCODER_VERSION, FEATURES, ObsInput};
+use skyherd_onboard::safety::{self, Limits, Reasons, Situation};
+use skyherd_onboard::wire::{
     MAX_MESSAGE, MissionAction, MissionCommand, Uplink, WorldSnapshot, chunks, encode_uplink,
 };
 
@@ -378,7 +379,7 @@ fn fly_mission<P: Policy>(
             action,
         })
     };
-    let mut position = crate::frame::sim_to_ned(scene.herders[0]);
+    let mut position = skyherd_onboard::frame::sim_to_ned(scene.herders[0]);
     let (mut armed, mut custom_mode) = (false, 0u32);
     note(core.tick(Millis(0)).status, &mut flow);
     send(&mut core, Millis(0), &command(1, MissionAction::Start))?;

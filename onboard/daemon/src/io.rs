@@ -29,25 +29,22 @@ use std::time::{Duration, Instant};
 
 use log::{debug, info, warn};
 use mavlink::dialects::common::{
-    COMMAND_LONG_DATA, HEARTBEAT_DATA, MavAutopilot, MavCmd, MavFrame, MavMessage, MavModeFlag,
-    MavResult, MavSeverity, MavState, MavTunnelPayloadType, MavType, PositionTargetTypemask,
-    SET_POSITION_TARGET_LOCAL_NED_DATA, STATUSTEXT_DATA,
+    HEARTBEAT_DATA, MavAutopilot, MavCmd, MavMessage, MavModeFlag, MavResult, MavSeverity,
+    MavState, MavTunnelPayloadType, MavType, STATUSTEXT_DATA,
 };
 use mavlink::error::MessageReadError;
 use mavlink::{
     Connectable, MAVLinkMessageRaw, MAVLinkV2MessageRaw, MavConnection, MavHeader, Message,
-    SigningConfig, SigningData, UdpConfig, UdpMode,
+    SigningData, UdpConfig, UdpMode,
 };
 
-use super::core::{AutopilotCommand, DaemonCore, Millis, Policy, Setpoint, Status};
+use crate::control::{AutopilotCommand, DaemonCore, Millis, Policy, Setpoint, Status};
 
+use skyherd_link::AUTOPILOT_COMPONENT_ID;
 /// Our MAVLink component id: `MAV_COMP_ID_ONBOARD_COMPUTER`.
-pub const COMPONENT_ID: u8 = 191;
-/// The autopilot's component id: `MAV_COMP_ID_AUTOPILOT1`.
-pub const AUTOPILOT_COMPONENT_ID: u8 = 1;
-/// SET_POSITION_TARGET_LOCAL_NED type_mask for "velocity only": ignore position,
-/// acceleration, yaw and yaw rate.
-pub const VELOCITY_ONLY_TYPE_MASK: u16 = 0x0DC7;
+pub use skyherd_link::DAEMON_COMPONENT_ID as COMPONENT_ID;
+use skyherd_link::command::{command_long, velocity_setpoint_ned};
+use skyherd_link::signing::{SigningKey, signing_data};
 /// HEARTBEAT period, ms of the daemon's clock.
 pub const HEARTBEAT_PERIOD_MS: u64 = 1000;
 /// Slowest control rate accepted, Hz: PX4 leaves OFFBOARD when setpoints come slower than 2 Hz.
@@ -138,7 +135,7 @@ impl std::error::Error for IoError {
 /// ignored).
 ///
 /// ```
-/// use skyherd_onboard::daemon::io::parse_key;
+/// use skyherd_daemon::io::parse_key;
 /// assert_eq!(parse_key(&[7u8; 32]).unwrap(), [7u8; 32]);
 /// assert_eq!(parse_key("ab".repeat(32).as_bytes()).unwrap(), [0xab; 32]);
 /// assert!(parse_key(b"too short").is_err());
@@ -206,7 +203,7 @@ impl UplinkGate {
     /// A gate requiring signatures made with `key`, or accepting everything without one.
     pub fn new(key: Option<[u8; KEY_LEN]>) -> Self {
         UplinkGate {
-            signing: key.map(|k| SigningData::from_config(SigningConfig::new(k, 0, true, false))),
+            signing: key.map(|k| signing_data(&SigningKey(k), 0)),
             counters: UplinkCounters::default(),
         }
     }
@@ -280,7 +277,7 @@ impl BootClock {
     /// The daemon time for a `time_boot_ms` just received.
     ///
     /// ```
-    /// use skyherd_onboard::daemon::{core::Millis, io::BootClock};
+    /// use skyherd_daemon::{control::Millis, io::BootClock};
     /// let mut clock = BootClock::default();
     /// assert_eq!(clock.update(5000), Millis(5000));
     /// assert_eq!(clock.update(9000), Millis(9000));
@@ -782,19 +779,12 @@ impl<P: Policy> Daemon<P> {
     }
 
     fn send_setpoint(&mut self, now: Millis, setpoint: Setpoint) {
-        let [vx, vy, vz] = setpoint.velocity_ned;
-        let message =
-            MavMessage::SET_POSITION_TARGET_LOCAL_NED(SET_POSITION_TARGET_LOCAL_NED_DATA {
-                time_boot_ms: now.0 as u32,
-                vx,
-                vy,
-                vz,
-                type_mask: PositionTargetTypemask::from_bits_retain(VELOCITY_ONLY_TYPE_MASK),
-                target_system: self.core.config().system_id,
-                target_component: AUTOPILOT_COMPONENT_ID,
-                coordinate_frame: MavFrame::MAV_FRAME_LOCAL_NED,
-                ..Default::default()
-            });
+        let message = velocity_setpoint_ned(
+            self.core.config().system_id,
+            AUTOPILOT_COMPONENT_ID,
+            now.0 as u32,
+            setpoint.velocity_ned,
+        );
         self.send_autopilot(&message);
         self.counters.autopilot.setpoints_sent += 1;
     }
@@ -810,14 +800,12 @@ impl<P: Policy> Daemon<P> {
             ),
         };
         info!("sending {command_id:?} ({param1}, {param2})");
-        let message = MavMessage::COMMAND_LONG(COMMAND_LONG_DATA {
-            param1,
-            param2,
-            command: command_id,
-            target_system: self.core.config().system_id,
-            target_component: AUTOPILOT_COMPONENT_ID,
-            ..Default::default()
-        });
+        let message = command_long(
+            self.core.config().system_id,
+            AUTOPILOT_COMPONENT_ID,
+            command_id,
+            [param1, param2, 0.0, 0.0, 0.0, 0.0, 0.0],
+        );
         self.send_autopilot(&message);
         self.counters.autopilot.commands_sent += 1;
     }

@@ -24,10 +24,10 @@ use skyherd_ground::tracking::{TrackedWorld, Tracker, TrackerConfig};
 use skyherd_onboard::safety::{self, Limits, Situation};
 use skyherd_sim::learned::{ActorPolicy, ModelPolicy};
 use skyherd_sim::policy::Policy;
-use skyherd_sim::sitl::mission::sensor_seed;
-use skyherd_sim::sitl::sensor::{DetectionSensor, SensorConfig};
 use skyherd_sim::world::World;
 use skyherd_sim::{Env, Scenario, run_episode};
+use skyherd_sitl::mission::sensor_seed;
+use skyherd_sitl::sensor::{DetectionSensor, SensorConfig};
 
 /// The loop effects applied around the model.
 #[derive(Clone, Copy, Debug, Default)]

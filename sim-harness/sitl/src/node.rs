@@ -9,7 +9,7 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
-use skyherd_ground::link::codec::{Codec, CodecStats, Frame, Signing};
+use skyherd_link::{Codec, CodecStats, Frame, Signing};
 
 use super::autopilot::MockAutopilot;
 use super::faults::{DelayLine, FaultConfig, FaultPlan, FaultStats, FaultyUdp, Verdict};
