@@ -2,6 +2,10 @@
 //!
 //! * [`fleet`]: the fleet link (UDP, TCP, serial) over `skyherd_link`'s codec and signing,
 //!   per-vehicle state, mission commands with COMMAND_ACK matching.
+//! * [`station`]: the mission loop as a pure core ([`station::GroundStation`]: scans,
+//!   telemetry and time in, frames to send out); the `skyherd-ground` binary only moves bytes.
+//! * [`mission`]: when to start, complete or abort; [`uplink`]: snapshots and commands as
+//!   TUNNEL frames; [`detections`]: the sensor's scans.
 //! * [`tlog`]: `.tlog` writer (pymavlink's format) with an injectable clock.
 //! * [`tracking`]: multi-target tracker over anonymous detections (constant-velocity Kalman
 //!   filters, grid gating, clustered assignment, M-of-N birth, death by misses).
@@ -11,6 +15,7 @@
 pub mod detections;
 pub mod fleet;
 pub mod mission;
+pub mod station;
 pub mod tlog;
 pub mod tracking;
 pub mod uplink;

@@ -11,7 +11,7 @@
 //! Simulator frame, metres, seconds.
 //!
 //! ```
-//! use skyherd_ground::mission::{DroneReport, MissionAction, MissionControl, MissionPlan, Phase};
+//! use skyherd_ground::mission::{DroneReport, MissionStep, MissionControl, MissionPlan, Phase};
 //! use skyherd_onboard::Task;
 //!
 //! let plan = MissionPlan::new(Task::Driving, [8.0, 8.0], 1.5, [10.0, 10.0, 3.0], vec![1, 2]);
@@ -20,7 +20,7 @@
 //!     DroneReport { system_id: 1, position: Some([1.0, 1.0, 0.0]), last_heard: 0.0 },
 //!     DroneReport { system_id: 2, position: Some([2.0, 1.0, 0.0]), last_heard: 0.0 },
 //! ];
-//! assert_eq!(mission.update(0.0, &drones, &[[3.0, 3.0]]), Some(MissionAction::Start));
+//! assert_eq!(mission.update(0.0, &drones, &[[3.0, 3.0]]), Some(MissionStep::Start));
 //! assert!(matches!(mission.phase(), Phase::Flying { .. }));
 //! ```
 
@@ -133,11 +133,21 @@ impl Phase {
     pub fn is_over(&self) -> bool {
         matches!(self, Phase::Complete { .. } | Phase::Aborted { .. })
     }
+
+    /// One word for logs: `waiting`, `flying`, `complete` or `aborted`.
+    pub fn name(&self) -> &'static str {
+        match self {
+            Phase::WaitingForFleet => "waiting",
+            Phase::Flying { .. } => "flying",
+            Phase::Complete { .. } => "complete",
+            Phase::Aborted { .. } => "aborted",
+        }
+    }
 }
 
-/// What to tell the drones.
+/// The next step of the mission: what to tell the drones.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub enum MissionAction {
+pub enum MissionStep {
     /// Send the start command.
     Start,
     /// Send the hold command (the mission is complete or aborted).
@@ -178,7 +188,7 @@ impl MissionControl {
     }
 
     /// The operator aborts; returns the hold action unless the mission is already over.
-    pub fn abort(&mut self, now: f64) -> Option<MissionAction> {
+    pub fn abort(&mut self, now: f64) -> Option<MissionStep> {
         if self.phase.is_over() {
             return None;
         }
@@ -186,7 +196,7 @@ impl MissionControl {
             at: now,
             reason: AbortReason::Operator,
         };
-        Some(MissionAction::Hold)
+        Some(MissionStep::Hold)
     }
 
     /// Advance to `now` with the fleet's reports and the tracked targets (simulator frame).
@@ -195,7 +205,7 @@ impl MissionControl {
         now: f64,
         drones: &[DroneReport],
         targets: &[[f32; 2]],
-    ) -> Option<MissionAction> {
+    ) -> Option<MissionStep> {
         let report = |id: u8| drones.iter().find(|d| d.system_id == id);
         match self.phase {
             Phase::WaitingForFleet => {
@@ -209,7 +219,7 @@ impl MissionControl {
                         started_at: now,
                         inside_since: None,
                     };
-                    return Some(MissionAction::Start);
+                    return Some(MissionStep::Start);
                 }
                 None
             }
@@ -223,12 +233,7 @@ impl MissionControl {
                         self.lost.push(id);
                     }
                 }
-                let abort = |reason| {
-                    (
-                        Phase::Aborted { at: now, reason },
-                        Some(MissionAction::Hold),
-                    )
-                };
+                let abort = |reason| (Phase::Aborted { at: now, reason }, Some(MissionStep::Hold));
                 let (phase, action) = if let Some(id) = self.first_outside_fence(drones) {
                     abort(AbortReason::Geofence { system_id: id })
                 } else if self.lost.len() == self.plan.drones.len() {
@@ -243,7 +248,7 @@ impl MissionControl {
                                 started_at,
                                 at: now,
                             },
-                            Some(MissionAction::Hold),
+                            Some(MissionStep::Hold),
                         )
                     } else {
                         (
@@ -331,7 +336,7 @@ mod tests {
             drone(1, [1.0, 1.0, 1.0], 0.0),
             drone(2, [2.0, 1.0, 1.0], 0.0),
         ];
-        assert_eq!(m.update(0.0, &d, &[]), Some(MissionAction::Start));
+        assert_eq!(m.update(0.0, &d, &[]), Some(MissionStep::Start));
         m
     }
 
@@ -363,7 +368,7 @@ mod tests {
         assert_eq!(m.update(1.0, &d, &inside[..1]), None);
         assert_eq!(m.update(1.5, &d, &inside), None);
         assert_eq!(m.update(2.0, &d, &inside), None);
-        assert_eq!(m.update(2.5, &d, &inside), Some(MissionAction::Hold));
+        assert_eq!(m.update(2.5, &d, &inside), Some(MissionStep::Hold));
         assert_eq!(
             m.phase(),
             Phase::Complete {
@@ -391,7 +396,7 @@ mod tests {
         assert_eq!(m.update(1.6, &d, &outside), None);
         assert_eq!(m.update(2.2, &d, &inside), None);
         assert_eq!(m.update(2.9, &d, &inside), None);
-        assert_eq!(m.update(3.2, &d, &inside), Some(MissionAction::Hold));
+        assert_eq!(m.update(3.2, &d, &inside), Some(MissionStep::Hold));
     }
 
     #[test]
@@ -401,7 +406,7 @@ mod tests {
             drone(1, [1.0, 1.0, 1.0], 1.0),
             drone(2, [11.0, 1.0, 1.0], 1.0),
         ];
-        assert_eq!(m.update(1.0, &d, &[]), Some(MissionAction::Hold));
+        assert_eq!(m.update(1.0, &d, &[]), Some(MissionStep::Hold));
         assert_eq!(
             m.phase(),
             Phase::Aborted {
@@ -425,7 +430,7 @@ mod tests {
             drone(1, [1.0, 1.0, 1.0], 5.0),
             drone(2, [2.0, 1.0, 1.0], 0.0),
         ];
-        assert_eq!(m.update(9.0, &d, &[]), Some(MissionAction::Hold));
+        assert_eq!(m.update(9.0, &d, &[]), Some(MissionStep::Hold));
         assert_eq!(
             m.phase(),
             Phase::Aborted {
@@ -442,7 +447,7 @@ mod tests {
             drone(1, [1.0, 1.0, 1.0], 700.0),
             drone(2, [2.0, 1.0, 1.0], 700.0),
         ];
-        assert_eq!(m.update(700.0, &d, &[]), Some(MissionAction::Hold));
+        assert_eq!(m.update(700.0, &d, &[]), Some(MissionStep::Hold));
         assert!(matches!(
             m.phase(),
             Phase::Aborted {
@@ -451,7 +456,7 @@ mod tests {
             }
         ));
         let mut m = started();
-        assert_eq!(m.abort(1.0), Some(MissionAction::Hold));
+        assert_eq!(m.abort(1.0), Some(MissionStep::Hold));
         assert_eq!(m.abort(2.0), None);
     }
 }

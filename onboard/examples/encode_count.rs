@@ -9,7 +9,7 @@
 use std::hint::black_box;
 
 use skyherd_model::SplitMix64;
-use skyherd_onboard::obs::{FEATURES, ObsInput, encode};
+use skyherd_onboard::obs::{FEATURES, ObsInput, encode, feature};
 
 fn main() {
     let args: Vec<usize> = std::env::args()
@@ -50,7 +50,7 @@ fn main() {
             max_speed: 5.0,
         };
         encode(&input, &mut features).expect("a valid world");
-        sum += black_box(features[0]);
+        sum += black_box(features[feature::GOAL.start]);
     }
     println!("{sum}");
 }

@@ -20,39 +20,39 @@
 //!   500 m arena does not swamp nearby detail.
 //! * **Counts as fractions.** Per-sector target counts are divided by N.
 //!
-//! | index | feature |
-//! |---|---|
-//! | 0-1 | goal centre, relative to the drone |
-//! | 2-3 | flock centroid, relative |
-//! | 4-5 | target farthest from the goal, relative |
-//! | 6 | its distance to the goal edge, `sc(d / R - 1)` |
-//! | 7 | flock radius (max distance to centroid), `sc(r / R)` |
-//! | 8 | mean distance to centroid, `sc(r / R)` |
-//! | 9 | fraction of targets inside the goal |
-//! | 10 | centroid distance to goal, `sc(d / R)` |
-//! | 11-12 | in the drone's own share (targets nearer to it than to any other herder): the one farthest from the goal, relative |
-//! | 13 | fraction of all targets in the drone's share |
-//! | 14 | that target's distance to the goal edge, `sc(d / R - 1)` |
-//! | 15-16 | the point [`STANDOFF`] x R behind that target on the goal line, relative |
-//! | 17-18 | the point behind the whole flock (centroid + (radius + standoff) away from the goal), relative |
-//! | 19-20 | nearest target, relative |
-//! | 21 | its distance, `sc(d / R)` |
-//! | 22 | own altitude, `sc(z / R)` |
-//! | 23-24 | nearest other herder, relative (zero when alone) |
-//! | 25 | its distance, `sc(d / R)` (zero when alone) |
-//! | 26 | 1 when there are other herders, else 0 |
-//! | 27-28 | centroid of the other herders, relative (zero when alone) |
-//! | 29 | (M - 1) / 31, clamped to [0, 1] |
-//! | 30 | ln(N) / ln(1024), clamped to [0, 1] |
-//! | 31-32 | unit direction from the flock centroid to the drone (its place around the flock) |
-//! | 33-40 | fraction of targets in each of 8 octants around the drone (local frame, counter-clockwise from the first axis) |
-//! | 41-42 | nearest arena wall, relative (the closest point on it) |
-//! | 43 | drone distance to the nearest wall, `sc(d / R)` |
-//! | 44 | smallest target distance to any wall, `sc(d / R)` |
-//! | 45 | fraction of targets within one goal radius of the drone |
-//! | 46-47 | (v4) the drone's slot on the enclosing ring, relative (see below) |
-//! | 48-49 | (v4) where to head now for that slot without crossing the flock, relative |
-//! | 50 | (v4) the slot's bearing from straight behind the flock, counter-clockwise, in half turns |
+//! | index | name in [`feature`] | feature |
+//! |---|---|---|
+//! | 0-1 | [`GOAL`](feature::GOAL) | goal centre, relative to the drone |
+//! | 2-3 | [`CENTROID`](feature::CENTROID) | flock centroid, relative |
+//! | 4-5 | [`FARTHEST_TARGET`](feature::FARTHEST_TARGET) | target farthest from the goal, relative |
+//! | 6 | [`FARTHEST_TARGET_TO_EDGE`](feature::FARTHEST_TARGET_TO_EDGE) | its distance to the goal edge, `sc(d / R - 1)` |
+//! | 7 | [`FLOCK_RADIUS`](feature::FLOCK_RADIUS) | flock radius (max distance to centroid), `sc(r / R)` |
+//! | 8 | [`MEAN_SPREAD`](feature::MEAN_SPREAD) | mean distance to centroid, `sc(r / R)` |
+//! | 9 | [`IN_GOAL`](feature::IN_GOAL) | fraction of targets inside the goal |
+//! | 10 | [`CENTROID_TO_GOAL`](feature::CENTROID_TO_GOAL) | centroid distance to goal, `sc(d / R)` |
+//! | 11-12 | [`SHARE_FARTHEST`](feature::SHARE_FARTHEST) | in the drone's own share (targets nearer to it than to any other herder): the one farthest from the goal, relative |
+//! | 13 | [`SHARE`](feature::SHARE) | fraction of all targets in the drone's share |
+//! | 14 | [`SHARE_FARTHEST_TO_EDGE`](feature::SHARE_FARTHEST_TO_EDGE) | that target's distance to the goal edge, `sc(d / R - 1)` |
+//! | 15-16 | [`SHARE_BEHIND`](feature::SHARE_BEHIND) | the point [`STANDOFF`] x R behind that target on the goal line, relative |
+//! | 17-18 | [`FLOCK_BEHIND`](feature::FLOCK_BEHIND) | the point behind the whole flock (centroid + (radius + standoff) away from the goal), relative |
+//! | 19-20 | [`NEAREST_TARGET`](feature::NEAREST_TARGET) | nearest target, relative |
+//! | 21 | [`NEAREST_TARGET_DISTANCE`](feature::NEAREST_TARGET_DISTANCE) | its distance, `sc(d / R)` |
+//! | 22 | [`ALTITUDE`](feature::ALTITUDE) | own altitude, `sc(z / R)` |
+//! | 23-24 | [`NEAREST_HERDER`](feature::NEAREST_HERDER) | nearest other herder, relative (zero when alone) |
+//! | 25 | [`NEAREST_HERDER_DISTANCE`](feature::NEAREST_HERDER_DISTANCE) | its distance, `sc(d / R)` (zero when alone) |
+//! | 26 | [`NOT_ALONE`](feature::NOT_ALONE) | 1 when there are other herders, else 0 |
+//! | 27-28 | [`OTHER_HERDERS`](feature::OTHER_HERDERS) | centroid of the other herders, relative (zero when alone) |
+//! | 29 | [`HERDER_COUNT`](feature::HERDER_COUNT) | (M - 1) / 31, clamped to [0, 1] |
+//! | 30 | [`TARGET_COUNT`](feature::TARGET_COUNT) | ln(N) / ln(1024), clamped to [0, 1] |
+//! | 31-32 | [`FROM_CENTROID`](feature::FROM_CENTROID) | unit direction from the flock centroid to the drone (its place around the flock) |
+//! | 33-40 | [`OCTANTS`](feature::OCTANTS) | fraction of targets in each of 8 octants around the drone (local frame, counter-clockwise from the first axis) |
+//! | 41-42 | [`NEAREST_WALL`](feature::NEAREST_WALL) | nearest arena wall, relative (the closest point on it) |
+//! | 43 | [`WALL_DISTANCE`](feature::WALL_DISTANCE) | drone distance to the nearest wall, `sc(d / R)` |
+//! | 44 | [`FLOCK_WALL_DISTANCE`](feature::FLOCK_WALL_DISTANCE) | smallest target distance to any wall, `sc(d / R)` |
+//! | 45 | [`NEARBY_TARGETS`](feature::NEARBY_TARGETS) | fraction of targets within one goal radius of the drone |
+//! | 46-47 | [`RING_SLOT`](feature::RING_SLOT) | (v4) the drone's slot on the enclosing ring, relative (see below) |
+//! | 48-49 | [`RING_WAY`](feature::RING_WAY) | (v4) where to head now for that slot without crossing the flock, relative |
+//! | 50 | [`RING_BEARING`](feature::RING_BEARING) | (v4) the slot's bearing from straight behind the flock, counter-clockwise, in half turns |
 //!
 //! The enclosing ring (features 46-50) is the geometry of the simulator's Enclose rule, which
 //! herds flocks of 256: every drone stands on an arc behind the flock, at the flock radius plus
@@ -87,6 +87,7 @@
 //! ```
 
 use core::fmt;
+use core::ops::Range;
 
 use core::f32::consts::{PI, TAU};
 
@@ -98,10 +99,10 @@ use libm::{atan2f, cosf, logf, sinf, sqrtf};
 /// between the paper arena (1 s steps) and the scaled indoor room (0.1 s steps) although the
 /// two worlds are the same map; v2 has no feature that depends on the time step.
 ///
-/// v3 measures the drone's altitude (feature 22) in goal radii instead of as a fraction of the
-/// ceiling: a room's 3 m ceiling does not shrink with the rest of the world, so under v2 a
-/// policy trained in the 10 m-high paper arena flew at 0.6 m indoors, 15 goal radii higher (and
-/// so much weaker, eq 6 follows the 3-D distance) than the 2 m it learned.
+/// v3 measures the drone's altitude (feature 22, [`feature::ALTITUDE`]) in goal radii instead of as
+/// a fraction of the ceiling: a room's 3 m ceiling does not shrink with the rest of the world, so
+/// under v2 a policy trained in the 10 m-high paper arena flew at 0.6 m indoors, 15 goal radii
+/// higher (and so much weaker, eq 6 follows the 3-D distance) than the 2 m it learned.
 ///
 /// v4 appends five features (46-50: the drone's slot on the enclosing ring and the way to it
 /// round the flock) and leaves the first 46 exactly as v3 computes them, so a v3 model still
@@ -113,6 +114,188 @@ pub const FEATURES: usize = 51;
 
 /// Length of encoder v3's feature vector, a prefix of v4's.
 pub const V3_FEATURES: usize = 46;
+
+/// Where each feature sits in [`encode`]'s output: the table in the [module docs](self), named
+/// once (a range for a vector or a group, an index for a single number). The version in each
+/// line is the encoder version that gave the feature its present meaning; "relative" and `sc`
+/// are as in the module docs.
+pub mod feature {
+    use core::ops::Range;
+
+    /// (v1) Goal centre, relative to the drone.
+    pub const GOAL: Range<usize> = 0..2;
+    /// (v1) Flock centroid, relative.
+    pub const CENTROID: Range<usize> = 2..4;
+    /// (v1) The target farthest from the goal, relative.
+    pub const FARTHEST_TARGET: Range<usize> = 4..6;
+    /// (v1) That target's distance to the goal edge, `sc(d / R - 1)`.
+    pub const FARTHEST_TARGET_TO_EDGE: usize = 6;
+    /// (v1) Flock radius (largest distance to the centroid), `sc(r / R)`.
+    pub const FLOCK_RADIUS: usize = 7;
+    /// (v1) Mean distance of the targets to the centroid, `sc(r / R)`.
+    pub const MEAN_SPREAD: usize = 8;
+    /// (v1) Fraction of the targets inside the goal.
+    pub const IN_GOAL: usize = 9;
+    /// (v1) Centroid distance to the goal centre, `sc(d / R)`.
+    pub const CENTROID_TO_GOAL: usize = 10;
+    /// (v1) In the drone's own share (targets nearer to it than to any other herder), the one
+    /// farthest from the goal, relative.
+    pub const SHARE_FARTHEST: Range<usize> = 11..13;
+    /// (v1) Fraction of all targets in the drone's share.
+    pub const SHARE: usize = 13;
+    /// (v1) Distance of [`SHARE_FARTHEST`] to the goal edge, `sc(d / R - 1)`.
+    pub const SHARE_FARTHEST_TO_EDGE: usize = 14;
+    /// (v1) The point [`STANDOFF`](super::STANDOFF) x R behind [`SHARE_FARTHEST`] on its goal
+    /// line, relative.
+    pub const SHARE_BEHIND: Range<usize> = 15..17;
+    /// (v1) The point behind the whole flock (centroid + (radius + stand-off) away from the
+    /// goal), relative.
+    pub const FLOCK_BEHIND: Range<usize> = 17..19;
+    /// (v1) The nearest target, relative.
+    pub const NEAREST_TARGET: Range<usize> = 19..21;
+    /// (v1) Its distance, `sc(d / R)`.
+    pub const NEAREST_TARGET_DISTANCE: usize = 21;
+    /// (v3) The drone's own altitude, `sc(z / R)` (v1 and v2: a fraction of the ceiling).
+    pub const ALTITUDE: usize = 22;
+    /// (v1) The nearest other herder, relative (zero when alone).
+    pub const NEAREST_HERDER: Range<usize> = 23..25;
+    /// (v1) Its distance, `sc(d / R)` (zero when alone).
+    pub const NEAREST_HERDER_DISTANCE: usize = 25;
+    /// (v1) 1 when there are other herders, else 0.
+    pub const NOT_ALONE: usize = 26;
+    /// (v1) Centroid of the other herders, relative (zero when alone).
+    pub const OTHER_HERDERS: Range<usize> = 27..29;
+    /// (v1) Herder count M as (M - 1) / 31, clamped to [0, 1].
+    pub const HERDER_COUNT: usize = 29;
+    /// (v1) Target count N as ln(N) / ln(1024), clamped to [0, 1] (0 without targets).
+    pub const TARGET_COUNT: usize = 30;
+    /// (v1) Unit direction from the flock centroid to the drone (its place around the flock).
+    pub const FROM_CENTROID: Range<usize> = 31..33;
+    /// (v1) Fraction of the targets in each of 8 octants around the drone (local frame,
+    /// counter-clockwise from the first axis).
+    pub const OCTANTS: Range<usize> = 33..41;
+    /// (v1) The nearest arena wall (the closest point on it), relative.
+    pub const NEAREST_WALL: Range<usize> = 41..43;
+    /// (v1) The drone's distance to the nearest wall, `sc(d / R)`.
+    pub const WALL_DISTANCE: usize = 43;
+    /// (v1) The smallest distance of any target to any wall, `sc(d / R)`.
+    pub const FLOCK_WALL_DISTANCE: usize = 44;
+    /// (v2) Fraction of the targets within one goal radius of the drone.
+    pub const NEARBY_TARGETS: usize = 45;
+    /// (v4) The drone's slot on the enclosing ring, relative.
+    pub const RING_SLOT: Range<usize> = 46..48;
+    /// (v4) Where to head now for [`RING_SLOT`] without crossing the flock, relative.
+    pub const RING_WAY: Range<usize> = 48..50;
+    /// (v4) The slot's bearing from straight behind the flock, counter-clockwise, in half
+    /// turns.
+    pub const RING_BEARING: usize = 50;
+
+    /// Every feature in index order, single ones as one-element ranges.
+    const LAYOUT: [Range<usize>; 31] = [
+        GOAL,
+        CENTROID,
+        FARTHEST_TARGET,
+        one(FARTHEST_TARGET_TO_EDGE),
+        one(FLOCK_RADIUS),
+        one(MEAN_SPREAD),
+        one(IN_GOAL),
+        one(CENTROID_TO_GOAL),
+        SHARE_FARTHEST,
+        one(SHARE),
+        one(SHARE_FARTHEST_TO_EDGE),
+        SHARE_BEHIND,
+        FLOCK_BEHIND,
+        NEAREST_TARGET,
+        one(NEAREST_TARGET_DISTANCE),
+        one(ALTITUDE),
+        NEAREST_HERDER,
+        one(NEAREST_HERDER_DISTANCE),
+        one(NOT_ALONE),
+        OTHER_HERDERS,
+        one(HERDER_COUNT),
+        one(TARGET_COUNT),
+        FROM_CENTROID,
+        OCTANTS,
+        NEAREST_WALL,
+        one(WALL_DISTANCE),
+        one(FLOCK_WALL_DISTANCE),
+        one(NEARBY_TARGETS),
+        RING_SLOT,
+        RING_WAY,
+        one(RING_BEARING),
+    ];
+
+    /// The vectors (two numbers each).
+    const VECTORS: [Range<usize>; 13] = [
+        GOAL,
+        CENTROID,
+        FARTHEST_TARGET,
+        SHARE_FARTHEST,
+        SHARE_BEHIND,
+        FLOCK_BEHIND,
+        NEAREST_TARGET,
+        NEAREST_HERDER,
+        OTHER_HERDERS,
+        FROM_CENTROID,
+        NEAREST_WALL,
+        RING_SLOT,
+        RING_WAY,
+    ];
+
+    const fn one(i: usize) -> Range<usize> {
+        i..i + 1
+    }
+
+    /// Whether `layout` covers `0..end` in order, each range non-empty and starting where the
+    /// one before it ends (no gap, no overlap).
+    const fn tiles(layout: &[Range<usize>], end: usize) -> bool {
+        let mut next = 0;
+        let mut k = 0;
+        while k < layout.len() {
+            if layout[k].start != next || layout[k].end <= layout[k].start {
+                return false;
+            }
+            next = layout[k].end;
+            k += 1;
+        }
+        next == end
+    }
+
+    const _: () = {
+        assert!(
+            tiles(&LAYOUT, super::FEATURES),
+            "the features must tile 0..FEATURES"
+        );
+        assert!(
+            RING_SLOT.start == super::V3_FEATURES,
+            "v4 appends to v3: its first feature sits at V3_FEATURES"
+        );
+        assert!(OCTANTS.end - OCTANTS.start == 8, "one feature per octant");
+        let mut k = 0;
+        while k < VECTORS.len() {
+            assert!(
+                VECTORS[k].end - VECTORS[k].start == 2,
+                "a vector is two numbers"
+            );
+            k += 1;
+        }
+    };
+
+    #[cfg(test)]
+    mod tests {
+        use super::*;
+
+        #[test]
+        fn the_layout_check_sees_gaps_and_overlaps() {
+            assert!(tiles(&LAYOUT, super::super::FEATURES));
+            assert!(tiles(&[0..2, 2..3], 3));
+            assert!(!tiles(&[0..2, 3..4], 4), "gap");
+            assert!(!tiles(&[0..2, 1..3], 3), "overlap");
+            assert!(!tiles(&[0..2, 2..2, 2..3], 3), "empty");
+            assert!(!tiles(&[0..2, 2..3], 4), "short");
+        }
+    }
+}
 
 /// How many features a model made for encoder `version` reads, or `None` for a version this
 /// encoder cannot serve. Every supported version's features are a prefix of [`encode`]'s.
@@ -387,26 +570,94 @@ fn validate(input: &ObsInput<'_>) -> Result<(), ObsError> {
 /// Encodes one drone's observation into `out` and returns the frame its action is read in.
 ///
 /// O(N * M) time (each target is assigned to its nearest herder), no heap; pure.
+///
+/// The passes, in order: validate the input; survey the targets (the first pass over them,
+/// which gives the centroid and so the frame); measure their spread (the second pass, in the
+/// frame); then write each group of [`feature`]s: the flock, the drone's share, the drone
+/// itself, the other herders, the walls and the v4 ring slot.
 pub fn encode(input: &ObsInput<'_>, out: &mut [f32; FEATURES]) -> Result<LocalFrame, ObsError> {
     validate(input)?;
     *out = [0.0; FEATURES];
 
     let own3 = input.herders[input.own_index];
     let own = [own3[0], own3[1]];
-    let goal = input.goal;
-    let inv_r = 1.0 / input.goal_radius;
-    let n = input.targets.len();
-    let m = input.herders.len();
+    let survey = survey_targets(input, own);
+    let view = View {
+        input,
+        own,
+        inv_r: 1.0 / input.goal_radius,
+        frame: local_frame(input, own, survey.centroid),
+    };
+    let spread = spread_targets(&view, survey.centroid);
 
-    // Pass 1 over targets: centroid, farthest from goal, nearest to me, goal occupancy, my share.
+    flock_features(&view, &survey, &spread, out);
+    share_features(&view, &survey, out);
+    own_features(&view, survey.centroid, out);
+    herder_features(&view, out);
+    wall_features(&view, &survey, out);
+    ring_features(&view, survey.centroid, spread.flock_radius, out);
+    Ok(view.frame)
+}
+
+/// What every feature pass of [`encode`] reads: the input, the drone's ground position, the
+/// inverse goal radius and the local frame.
+struct View<'i, 'a> {
+    input: &'i ObsInput<'a>,
+    own: [f32; 2],
+    inv_r: f32,
+    frame: LocalFrame,
+}
+
+impl View<'_, '_> {
+    /// A point as a "relative" feature: `compress((p - own) / R)` in the local frame.
+    fn rel(&self, p: [f32; 2]) -> [f32; 2] {
+        let own = self.own;
+        let inv_r = self.inv_r;
+        compress(
+            self.frame
+                .to_local([(p[0] - own[0]) * inv_r, (p[1] - own[1]) * inv_r]),
+        )
+    }
+}
+
+/// Writes the two numbers of a vector feature.
+fn put2(out: &mut [f32; FEATURES], at: Range<usize>, v: [f32; 2]) {
+    out[at].copy_from_slice(&v);
+}
+
+/// The first pass over the targets, in the simulator frame (the local frame follows from its
+/// centroid).
+struct Survey {
+    /// Flock centroid; the drone's position when there are no targets.
+    centroid: [f32; 2],
+    /// Squared goal distance and position of the target farthest from the goal.
+    farthest: (f32, [f32; 2]),
+    /// Squared distance and position of the target nearest to the drone.
+    nearest: (f32, [f32; 2]),
+    /// Targets inside the goal.
+    inside: usize,
+    /// Targets in the drone's share.
+    mine: usize,
+    /// As `farthest`, among the drone's share.
+    my_farthest: (f32, [f32; 2]),
+    /// The flock's bounding box (lower and upper corner); it gives the smallest
+    /// target-to-wall distance without a per-target wall search.
+    lo: [f32; 2],
+    hi: [f32; 2],
+    /// Targets within one goal radius of the drone.
+    near_me: usize,
+}
+
+/// Pass 1 over targets: centroid, farthest from goal, nearest to me, goal occupancy, my share.
+fn survey_targets(input: &ObsInput<'_>, own: [f32; 2]) -> Survey {
+    let goal = input.goal;
+    let n = input.targets.len();
     let mut sum = [0.0_f32; 2];
     let mut farthest = (f32::NEG_INFINITY, goal);
     let mut nearest = (f32::INFINITY, own);
     let mut inside = 0usize;
     let mut mine = 0usize;
     let mut my_farthest = (f32::NEG_INFINITY, own);
-    // The flock's bounding box gives the smallest target-to-wall distance without a per-target
-    // wall search.
     let mut lo = [f32::INFINITY; 2];
     let mut hi = [f32::NEG_INFINITY; 2];
     let mut near_me = 0usize;
@@ -445,82 +696,141 @@ pub fn encode(input: &ObsInput<'_>, out: &mut [f32; FEATURES]) -> Result<LocalFr
     } else {
         own
     };
+    Survey {
+        centroid,
+        farthest,
+        nearest,
+        inside,
+        mine,
+        my_farthest,
+        lo,
+        hi,
+        near_me,
+    }
+}
 
-    // The frame: from the flock to the goal; from me to the goal when the flock sits on it.
-    let forward = unit_or(sub(goal, centroid), unit_or(sub(goal, own), [1.0, 0.0]));
-    let frame = LocalFrame {
-        forward,
+/// The frame: from the flock to the goal; from me to the goal when the flock sits on it.
+fn local_frame(input: &ObsInput<'_>, own: [f32; 2], centroid: [f32; 2]) -> LocalFrame {
+    let goal = input.goal;
+    LocalFrame {
+        forward: unit_or(sub(goal, centroid), unit_or(sub(goal, own), [1.0, 0.0])),
         max_speed: input.max_speed,
-    };
-    let rel =
-        |p: [f32; 2]| compress(frame.to_local([(p[0] - own[0]) * inv_r, (p[1] - own[1]) * inv_r]));
-    let put2 = |out: &mut [f32; FEATURES], i: usize, v: [f32; 2]| {
-        out[i] = v[0];
-        out[i + 1] = v[1];
-    };
+    }
+}
 
-    // Pass 2 over targets: spread around the centroid and octant occupancy around me.
+/// The second pass over the targets, which needs the centroid and the frame.
+struct Spread {
+    /// Largest target distance to the centroid, metres.
+    flock_radius: f32,
+    /// Sum of the target distances to the centroid, metres.
+    spread_sum: f32,
+    /// Targets per octant around the drone, local frame.
+    octants: [usize; 8],
+}
+
+/// Pass 2 over targets: spread around the centroid and octant occupancy around me.
+fn spread_targets(view: &View<'_, '_>, centroid: [f32; 2]) -> Spread {
     let mut max_spread2 = 0.0_f32;
     let mut spread_sum = 0.0_f32;
     let mut octants = [0usize; 8];
-    for &t in input.targets {
+    for &t in view.input.targets {
         let d2 = dist2(t, centroid);
         max_spread2 = larger(max_spread2, d2);
         spread_sum += sqrtf(d2);
-        octants[octant(frame.to_local(sub(t, own)))] += 1;
+        octants[octant(view.frame.to_local(sub(t, view.own)))] += 1;
     }
-    let flock_radius = sqrtf(max_spread2);
-    let standoff = STANDOFF * input.goal_radius;
+    Spread {
+        flock_radius: sqrtf(max_spread2),
+        spread_sum,
+        octants,
+    }
+}
 
-    put2(out, 0, rel(goal));
+/// The goal and the whole flock: [`feature::GOAL`] to [`feature::CENTROID_TO_GOAL`],
+/// [`feature::FLOCK_BEHIND`] to [`feature::NEAREST_TARGET_DISTANCE`],
+/// [`feature::TARGET_COUNT`], [`feature::OCTANTS`] and [`feature::NEARBY_TARGETS`]; all but
+/// the goal stay zero without targets.
+fn flock_features(
+    view: &View<'_, '_>,
+    survey: &Survey,
+    spread: &Spread,
+    out: &mut [f32; FEATURES],
+) {
+    let goal = view.input.goal;
+    let inv_r = view.inv_r;
+    let n = view.input.targets.len();
+    put2(out, feature::GOAL, view.rel(goal));
     if n > 0 {
-        put2(out, 2, rel(centroid));
-        put2(out, 4, rel(farthest.1));
-        out[6] = soft(sqrtf(farthest.0) * inv_r - 1.0);
-        out[7] = soft(flock_radius * inv_r);
-        out[8] = soft(spread_sum / n as f32 * inv_r);
-        out[9] = inside as f32 / n as f32;
-        out[10] = soft(sqrtf(dist2(centroid, goal)) * inv_r);
-        if mine > 0 {
-            let t = my_farthest.1;
-            put2(out, 11, rel(t));
-            out[13] = mine as f32 / n as f32;
-            out[14] = soft(sqrtf(my_farthest.0) * inv_r - 1.0);
-            let away = unit_or(sub(t, goal), [-forward[0], -forward[1]]);
-            put2(
-                out,
-                15,
-                rel([t[0] + away[0] * standoff, t[1] + away[1] * standoff]),
-            );
-        }
+        let centroid = survey.centroid;
+        put2(out, feature::CENTROID, view.rel(centroid));
+        put2(out, feature::FARTHEST_TARGET, view.rel(survey.farthest.1));
+        out[feature::FARTHEST_TARGET_TO_EDGE] = soft(sqrtf(survey.farthest.0) * inv_r - 1.0);
+        out[feature::FLOCK_RADIUS] = soft(spread.flock_radius * inv_r);
+        out[feature::MEAN_SPREAD] = soft(spread.spread_sum / n as f32 * inv_r);
+        out[feature::IN_GOAL] = survey.inside as f32 / n as f32;
+        out[feature::CENTROID_TO_GOAL] = soft(sqrtf(dist2(centroid, goal)) * inv_r);
+        let forward = view.frame.forward;
         let away = unit_or(sub(centroid, goal), [-forward[0], -forward[1]]);
-        let behind = flock_radius + standoff;
+        let behind = spread.flock_radius + STANDOFF * view.input.goal_radius;
         put2(
             out,
-            17,
-            rel([
+            feature::FLOCK_BEHIND,
+            view.rel([
                 centroid[0] + away[0] * behind,
                 centroid[1] + away[1] * behind,
             ]),
         );
-        put2(out, 19, rel(nearest.1));
-        out[21] = soft(sqrtf(nearest.0) * inv_r);
-        for (k, &count) in octants.iter().enumerate() {
-            out[33 + k] = count as f32 / n as f32;
+        put2(out, feature::NEAREST_TARGET, view.rel(survey.nearest.1));
+        out[feature::NEAREST_TARGET_DISTANCE] = soft(sqrtf(survey.nearest.0) * inv_r);
+        for (o, &count) in out[feature::OCTANTS].iter_mut().zip(&spread.octants) {
+            *o = count as f32 / n as f32;
         }
-        let min_wall = lo[0]
-            .min(lo[1])
-            .min(input.area[0] - hi[0])
-            .min(input.area[1] - hi[1])
-            .max(0.0);
-        out[44] = soft(min_wall * inv_r);
-        out[45] = near_me as f32 / n as f32;
+        out[feature::NEARBY_TARGETS] = survey.near_me as f32 / n as f32;
+        out[feature::TARGET_COUNT] = (logf(n as f32) / logf(1024.0)).clamp(0.0, 1.0);
     }
-    out[22] = soft(own3[2].max(0.0) * inv_r);
+}
 
-    // Other herders.
+/// The drone's share of the flock: [`feature::SHARE_FARTHEST`] to [`feature::SHARE_BEHIND`],
+/// zero when the share is empty.
+fn share_features(view: &View<'_, '_>, survey: &Survey, out: &mut [f32; FEATURES]) {
+    if survey.mine == 0 {
+        return;
+    }
+    let goal = view.input.goal;
+    let n = view.input.targets.len();
+    let t = survey.my_farthest.1;
+    put2(out, feature::SHARE_FARTHEST, view.rel(t));
+    out[feature::SHARE] = survey.mine as f32 / n as f32;
+    out[feature::SHARE_FARTHEST_TO_EDGE] = soft(sqrtf(survey.my_farthest.0) * view.inv_r - 1.0);
+    let forward = view.frame.forward;
+    let away = unit_or(sub(t, goal), [-forward[0], -forward[1]]);
+    let standoff = STANDOFF * view.input.goal_radius;
+    put2(
+        out,
+        feature::SHARE_BEHIND,
+        view.rel([t[0] + away[0] * standoff, t[1] + away[1] * standoff]),
+    );
+}
+
+/// The drone itself: [`feature::ALTITUDE`] and [`feature::FROM_CENTROID`].
+fn own_features(view: &View<'_, '_>, centroid: [f32; 2], out: &mut [f32; FEATURES]) {
+    let z = view.input.herders[view.input.own_index][2];
+    out[feature::ALTITUDE] = soft(z.max(0.0) * view.inv_r);
+    put2(
+        out,
+        feature::FROM_CENTROID,
+        view.frame
+            .to_local(unit_or(sub(view.own, centroid), [0.0, 0.0])),
+    );
+}
+
+/// The pass over the other herders: [`feature::NEAREST_HERDER`] to
+/// [`feature::OTHER_HERDERS`] (zero when alone) and [`feature::HERDER_COUNT`].
+fn herder_features(view: &View<'_, '_>, out: &mut [f32; FEATURES]) {
+    let input = view.input;
+    let m = input.herders.len();
     if m > 1 {
-        let mut nearest_herder = (f32::INFINITY, own);
+        let mut nearest_herder = (f32::INFINITY, view.own);
         let mut others = [0.0_f32; 2];
         for (j, h) in input.herders.iter().enumerate() {
             if j == input.own_index {
@@ -529,54 +839,73 @@ pub fn encode(input: &ObsInput<'_>, out: &mut [f32; FEATURES]) -> Result<LocalFr
             let p = [h[0], h[1]];
             others[0] += p[0];
             others[1] += p[1];
-            let d2 = dist2(p, own);
+            let d2 = dist2(p, view.own);
             if d2 < nearest_herder.0 {
                 nearest_herder = (d2, p);
             }
         }
         let k = 1.0 / (m - 1) as f32;
-        put2(out, 23, rel(nearest_herder.1));
-        out[25] = soft(sqrtf(nearest_herder.0) * inv_r);
-        out[26] = 1.0;
-        put2(out, 27, rel([others[0] * k, others[1] * k]));
+        put2(out, feature::NEAREST_HERDER, view.rel(nearest_herder.1));
+        out[feature::NEAREST_HERDER_DISTANCE] = soft(sqrtf(nearest_herder.0) * view.inv_r);
+        out[feature::NOT_ALONE] = 1.0;
+        put2(
+            out,
+            feature::OTHER_HERDERS,
+            view.rel([others[0] * k, others[1] * k]),
+        );
     }
-    out[29] = ((m as f32 - 1.0) / 31.0).clamp(0.0, 1.0);
-    out[30] = if n > 0 {
-        (logf(n as f32) / logf(1024.0)).clamp(0.0, 1.0)
-    } else {
-        0.0
-    };
-    put2(
-        out,
-        31,
-        frame.to_local(unit_or(sub(own, centroid), [0.0, 0.0])),
-    );
-    let (wall_distance, wall_point) = nearest_wall(own, input.area);
-    put2(out, 41, rel(wall_point));
-    out[43] = soft(wall_distance * inv_r);
+    out[feature::HERDER_COUNT] = ((m as f32 - 1.0) / 31.0).clamp(0.0, 1.0);
+}
 
-    // v4: the drone's slot on the enclosing ring and the way there round the flock.
-    if n > 0 {
-        let slot = ring_slot(input, &frame, centroid, flock_radius);
-        // Kept off the walls as the rule keeps its herders: a slot beyond a wall would teach
-        // the drone to wait at the fence, where the actuation noise carries it out.
-        let margin = RING_WALL_MARGIN * input.goal_radius;
-        let inside = |p: [f32; 2]| {
-            let clamp = |x: f32, size: f32| {
-                x.clamp(
-                    smaller(margin, 0.5 * size),
-                    larger(size - margin, 0.5 * size),
-                )
-            };
-            [clamp(p[0], input.area[0]), clamp(p[1], input.area[1])]
-        };
-        let slot_world = inside(add(centroid, frame.to_world(slot.point)));
-        let way_world = inside(add(centroid, frame.to_world(slot.waypoint)));
-        put2(out, 46, rel(slot_world));
-        put2(out, 48, rel(way_world));
-        out[50] = slot.angle * (1.0 / PI);
+/// The arena walls: [`feature::NEAREST_WALL`], [`feature::WALL_DISTANCE`] and (zero without
+/// targets) [`feature::FLOCK_WALL_DISTANCE`].
+fn wall_features(view: &View<'_, '_>, survey: &Survey, out: &mut [f32; FEATURES]) {
+    let area = view.input.area;
+    let (wall_distance, wall_point) = nearest_wall(view.own, area);
+    put2(out, feature::NEAREST_WALL, view.rel(wall_point));
+    out[feature::WALL_DISTANCE] = soft(wall_distance * view.inv_r);
+    if !view.input.targets.is_empty() {
+        let (lo, hi) = (survey.lo, survey.hi);
+        let min_wall = lo[0]
+            .min(lo[1])
+            .min(area[0] - hi[0])
+            .min(area[1] - hi[1])
+            .max(0.0);
+        out[feature::FLOCK_WALL_DISTANCE] = soft(min_wall * view.inv_r);
     }
-    Ok(frame)
+}
+
+/// v4: the drone's slot on the enclosing ring and the way there round the flock,
+/// [`feature::RING_SLOT`] to [`feature::RING_BEARING`]; zero without targets.
+fn ring_features(
+    view: &View<'_, '_>,
+    centroid: [f32; 2],
+    flock_radius: f32,
+    out: &mut [f32; FEATURES],
+) {
+    let input = view.input;
+    if input.targets.is_empty() {
+        return;
+    }
+    let frame = &view.frame;
+    let slot = ring_slot(input, frame, centroid, flock_radius);
+    // Kept off the walls as the rule keeps its herders: a slot beyond a wall would teach
+    // the drone to wait at the fence, where the actuation noise carries it out.
+    let margin = RING_WALL_MARGIN * input.goal_radius;
+    let inside = |p: [f32; 2]| {
+        let clamp = |x: f32, size: f32| {
+            x.clamp(
+                smaller(margin, 0.5 * size),
+                larger(size - margin, 0.5 * size),
+            )
+        };
+        [clamp(p[0], input.area[0]), clamp(p[1], input.area[1])]
+    };
+    let slot_world = inside(add(centroid, frame.to_world(slot.point)));
+    let way_world = inside(add(centroid, frame.to_world(slot.waypoint)));
+    put2(out, feature::RING_SLOT, view.rel(slot_world));
+    put2(out, feature::RING_WAY, view.rel(way_world));
+    out[feature::RING_BEARING] = slot.angle * (1.0 / PI);
 }
 
 /// Where the ring rule puts a drone, in the local frame relative to the flock centroid.
@@ -591,13 +920,13 @@ struct RingSlot {
     waypoint: [f32; 2],
 }
 
-/// The enclosing-ring slot (encoder v4, features 46-50): the drones stand on an arc behind the
-/// flock at its radius plus the stand-off, in the order of their bearing around the centroid,
-/// evenly spaced; the arc opens from 120 degrees to a full ring as the centroid comes within
-/// [`RING_WRAP`] goal radii of the goal, and the ring's centre moves up to [`RING_SHIFT`] goal
-/// radii goalwards. Every drone sees every herder, so each computes its own slot alone and the
-/// slots do not collide. The geometry is the simulator's Enclose rule; the collectors it sets
-/// aside are not known here, so all drones count.
+/// The enclosing-ring slot (encoder v4, [`feature::RING_SLOT`] to [`feature::RING_BEARING`]): the
+/// drones stand on an arc behind the flock at its radius plus the stand-off, in the order of their
+/// bearing around the centroid, evenly spaced; the arc opens from 120 degrees to a full ring as the
+/// centroid comes within [`RING_WRAP`] goal radii of the goal, and the ring's centre moves up to
+/// [`RING_SHIFT`] goal radii goalwards. Every drone sees every herder, so each computes its own
+/// slot alone and the slots do not collide. The geometry is the simulator's Enclose rule; the
+/// collectors it sets aside are not known here, so all drones count.
 fn ring_slot(
     input: &ObsInput<'_>,
     frame: &LocalFrame,
@@ -721,6 +1050,11 @@ mod tests {
         }
     }
 
+    /// The two numbers of the vector feature `at`.
+    fn pair(f: &[f32; FEATURES], at: Range<usize>) -> [f32; 2] {
+        [f[at.start], f[at.start + 1]]
+    }
+
     fn encode_ok(i: &ObsInput<'_>) -> ([f32; FEATURES], LocalFrame) {
         let mut out = [0.0; FEATURES];
         let frame = encode(i, &mut out).expect("valid input");
@@ -781,7 +1115,7 @@ mod tests {
     #[test]
     fn duplicating_every_target_changes_only_the_count_feature() {
         // N-independence: the same flock with twice the members encodes the same apart from
-        // feature 30 (log N).
+        // the target count (log N).
         let herders = [[100.0, 100.0, 2.0], [200.0, 90.0, 3.0]];
         let base = scatter(32, 5, [150.0, 150.0], 30.0);
         let mut doubled = [[0.0; 2]; 64];
@@ -790,11 +1124,11 @@ mod tests {
         let (a, _) = encode_ok(&input(&herders, &base[..32], 0));
         let (b, _) = encode_ok(&input(&herders, &doubled, 0));
         for (k, (x, y)) in a.iter().zip(b.iter()).enumerate() {
-            if k != 30 {
+            if k != feature::TARGET_COUNT {
                 assert!((x - y).abs() < 1e-5, "feature {k}: {x} vs {y}");
             }
         }
-        assert!(b[30] > a[30]);
+        assert!(b[feature::TARGET_COUNT] > a[feature::TARGET_COUNT]);
     }
 
     #[test]
@@ -860,7 +1194,7 @@ mod tests {
         let (f, frame) = encode_ok(&i);
         assert!((frame.forward[0]).abs() < 1e-6 && (frame.forward[1] - 1.0).abs() < 1e-6);
         // The goal is ahead of the flock: its local x exceeds the centroid's.
-        assert!(f[0] > f[2]);
+        assert!(pair(&f, feature::GOAL)[0] > pair(&f, feature::CENTROID)[0]);
     }
 
     #[test]
@@ -889,7 +1223,7 @@ mod tests {
         ];
         let targets = scatter(50, 13, [150.0, 150.0], 60.0);
         let total: f32 = (0..3)
-            .map(|own| encode_ok(&input(&herders, &targets[..50], own)).0[13])
+            .map(|own| encode_ok(&input(&herders, &targets[..50], own)).0[feature::SHARE])
             .sum();
         assert!((total - 1.0).abs() < 1e-5, "shares add up to {total}");
     }
@@ -899,8 +1233,8 @@ mod tests {
         let herders = [[10.0, 10.0, 1.0]];
         let (f, _) = encode_ok(&input(&herders, &[], 0));
         assert!(f.iter().all(|x| x.is_finite()));
-        assert_eq!(f[26], 0.0);
-        assert_eq!(f[30], 0.0);
+        assert_eq!(f[feature::NOT_ALONE], 0.0);
+        assert_eq!(f[feature::TARGET_COUNT], 0.0);
     }
 
     #[test]
@@ -967,16 +1301,18 @@ mod tests {
     #[test]
     fn a_lone_drone_far_from_the_goal_has_its_slot_straight_behind_the_flock() {
         // With one herder the arc has one slot, in its middle: the point behind the whole flock
-        // (features 17-18); behind the flock already, the way there is straight.
+        // (FLOCK_BEHIND); behind the flock already, the way there is straight.
         let herders = [[60.0, 90.0, 2.0]];
         let targets = scatter(40, 13, [150.0, 150.0], 20.0);
         let (f, _) = encode_ok(&input(&herders, &targets[..40], 0));
+        let (slot, way) = (pair(&f, feature::RING_SLOT), pair(&f, feature::RING_WAY));
+        let behind = pair(&f, feature::FLOCK_BEHIND);
         assert!(
-            (f[46] - f[17]).abs() < 1e-4 && (f[47] - f[18]).abs() < 1e-4,
+            (slot[0] - behind[0]).abs() < 1e-4 && (slot[1] - behind[1]).abs() < 1e-4,
             "{f:?}"
         );
-        assert!((f[48] - f[46]).abs() < 1e-6 && (f[49] - f[47]).abs() < 1e-6);
-        assert_eq!(f[50], 0.0);
+        assert!((way[0] - slot[0]).abs() < 1e-6 && (way[1] - slot[1]).abs() < 1e-6);
+        assert_eq!(f[feature::RING_BEARING], 0.0);
     }
 
     #[test]
@@ -988,18 +1324,24 @@ mod tests {
             let a = 0.9 * k as f32 + 0.3 * (k * k) as f32;
             [400.0 + 70.0 * cosf(a), 380.0 + 70.0 * sinf(a), 2.0]
         });
-        let mut angles: [f32; 6] =
-            core::array::from_fn(|own| encode_ok(&input(&herders, &targets, own)).0[50] * PI);
+        let mut angles: [f32; 6] = core::array::from_fn(|own| {
+            encode_ok(&input(&herders, &targets, own)).0[feature::RING_BEARING] * PI
+        });
         angles.sort_by(f32::total_cmp);
         for pair in angles.windows(2) {
             assert!((pair[1] - pair[0] - TAU / 6.0).abs() < 1e-4, "{angles:?}");
         }
     }
 
-    /// Undoes `rel` for the point at features `i`, `i + 1`: decompress, to world, scale, add
-    /// the drone's position.
-    fn world_point(f: &[f32; FEATURES], i: usize, frame: &LocalFrame, own: [f32; 3]) -> [f32; 2] {
-        let v = [f[i], f[i + 1]];
+    /// Undoes `rel` for the point feature `at`: decompress, to world, scale, add the drone's
+    /// position.
+    fn world_point(
+        f: &[f32; FEATURES],
+        at: Range<usize>,
+        frame: &LocalFrame,
+        own: [f32; 3],
+    ) -> [f32; 2] {
+        let v = pair(f, at);
         let c = sqrtf(v[0] * v[0] + v[1] * v[1]);
         let d = libm::expf(c) - 1.0;
         let local = if c > 0.0 {
@@ -1019,8 +1361,8 @@ mod tests {
         let targets = scatter(40, 19, [150.0, 150.0], 20.0);
         let herders = [[260.0, 250.0, 2.0]];
         let (f, frame) = encode_ok(&input(&herders, &targets[..40], 0));
-        let slot = world_point(&f, 46, &frame, herders[0]);
-        let way = world_point(&f, 48, &frame, herders[0]);
+        let slot = world_point(&f, feature::RING_SLOT, &frame, herders[0]);
+        let way = world_point(&f, feature::RING_WAY, &frame, herders[0]);
         assert!(dist2(slot, way) > 1.0, "slot {slot:?} way {way:?}");
         let n = targets[..40].len() as f32;
         let centroid = targets[..40]
@@ -1041,7 +1383,7 @@ mod tests {
             let mut i = input(&herders, &targets, own);
             i.goal = [450.0, 250.0];
             let (f, frame) = encode_ok(&i);
-            let x = world_point(&f, 46, &frame, herders[own])[0];
+            let x = world_point(&f, feature::RING_SLOT, &frame, herders[own])[0];
             assert!(
                 x >= RING_WALL_MARGIN * 45.0 - 1e-2,
                 "drone {own}: slot at x = {x}"

@@ -155,6 +155,9 @@ pub enum MissionAction {
     Start,
     /// Stop: hold position and wait.
     Abort,
+    /// The task is done (every target in the goal): hold position. Appended after `Abort`,
+    /// so earlier encodings are unchanged.
+    Complete,
 }
 
 /// A mission command from the ground station.

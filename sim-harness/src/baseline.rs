@@ -606,7 +606,9 @@ mod tests {
     /// the goalward shift, the detour round the flock and the wall margin all count.
     #[test]
     fn the_encoders_ring_features_point_where_enclose_herders_go() {
-        use skyherd_onboard::obs::{FEATURES, RING_ARC, RING_SHIFT, RING_WALL_MARGIN, RING_WRAP};
+        use skyherd_onboard::obs::{
+            FEATURES, RING_ARC, RING_SHIFT, RING_WALL_MARGIN, RING_WRAP, feature,
+        };
         // The constants are the rule's, to f32 precision.
         assert!((f64::from(RING_ARC) - STROMBOM_ARC).abs() < 1e-6);
         assert!((f64::from(RING_WRAP) - ENCLOSE_WRAP_R).abs() < 1e-6);
@@ -645,7 +647,8 @@ mod tests {
                 continue; // already in its slot
             }
             let frame = buffers.encode(h, &mut features).unwrap();
-            let way = frame.to_world([features[48], features[49]]);
+            let way: [f32; 2] = features[feature::RING_WAY].try_into().unwrap();
+            let way = frame.to_world(way);
             let way = [f64::from(way[0]), f64::from(way[1])];
             let cos = (v[0] * way[0] + v[1] * way[1]) / (speed * way[0].hypot(way[1]));
             assert!(cos > 0.9999, "herder {h}: rule {v:?}, encoder way {way:?}");

@@ -187,6 +187,8 @@ pub enum HoldReason {
     },
     /// The ground aborted the mission.
     Aborted,
+    /// The ground reported the task done.
+    Complete,
     /// Someone else disarmed the vehicle or switched it out of the control mode while the
     /// autopilot link was healthy: the pilot has it, the daemon does not take it back until
     /// the next start command.
@@ -207,6 +209,7 @@ impl fmt::Display for HoldReason {
                 write!(f, "uplink stale (newest snapshot {age_ms} ms old)")
             }
             HoldReason::Aborted => f.write_str("mission aborted by the ground"),
+            HoldReason::Complete => f.write_str("mission complete"),
             HoldReason::ControlReleased => {
                 f.write_str("control taken away (disarmed or mode changed by someone else)")
             }
@@ -327,7 +330,8 @@ struct ActiveMission {
 enum Mission {
     Idle,
     Active(ActiveMission),
-    Aborted,
+    /// Ended by the ground (aborted or complete): hold with this reason until a new start.
+    Ended(HoldReason),
 }
 
 /// The daemon's decision core. See the [module docs](self).
@@ -550,7 +554,11 @@ impl<P: Policy> DaemonCore<P> {
             }
             MissionAction::Abort => {
                 info!("mission abort: holding");
-                self.mission = Mission::Aborted;
+                self.mission = Mission::Ended(HoldReason::Aborted);
+            }
+            MissionAction::Complete => {
+                info!("mission complete: holding");
+                self.mission = Mission::Ended(HoldReason::Complete);
             }
         }
     }
@@ -593,7 +601,7 @@ impl<P: Policy> DaemonCore<P> {
                     status: Status::Idle,
                 };
             }
-            Mission::Aborted => return hold(HoldReason::Aborted),
+            Mission::Ended(reason) => return hold(*reason),
             Mission::Active(mission) => mission,
         };
         if !link_ok {
@@ -1093,6 +1101,17 @@ mod tests {
         c.on_uplink(Millis(5000), command(3, MissionAction::Start));
         c.on_uplink(Millis(5000), snapshot(2));
         assert_eq!(c.tick(Millis(5000)).status, Status::Flying(Reasons::NONE));
+    }
+
+    #[test]
+    fn a_completed_mission_holds_and_says_so() {
+        let (mut c, _) = flying();
+        c.on_uplink(Millis(100), command(2, MissionAction::Complete));
+        autopilot(&mut c, 200, true, PX4_OFFBOARD);
+        let d = c.tick(Millis(200));
+        assert_eq!(d.status, Status::Holding(HoldReason::Complete));
+        assert_eq!(d.status.to_string(), "holding: mission complete");
+        assert_eq!((d.setpoint, d.command), (Some(Setpoint::HOLD), None));
     }
 
     #[test]
