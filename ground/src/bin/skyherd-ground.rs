@@ -138,102 +138,121 @@ fn parse_drone(text: &str) -> Result<(u8, String)> {
 
 fn main() -> Result<()> {
     let Command::Mission(args) = Cli::parse().command;
-    let config = args.station_config()?;
-    let key = read_key(args.key.as_ref())?;
-    let fleet_key = read_key(args.fleet_key.as_ref())?;
-    let drones = args.drone_addresses()?;
-
-    let mut fleet = GroundLink::open(&args.fleet, link_config(&fleet_key, 0))
-        .with_context(|| format!("opening the fleet link {}", args.fleet))?;
-    if let Some(path) = &args.tlog {
-        fleet.log_to(Box::new(BufWriter::new(create(path)?)));
-    }
-    let mut uplinks = Vec::new();
-    for (i, (id, address)) in drones.iter().enumerate() {
-        let link = GroundLink::open(address, link_config(&key, i as u8 + 1))
-            .with_context(|| format!("opening the uplink {address} of drone {id}"))?;
-        uplinks.push((*id, link));
-    }
-    let mut csv = match &args.csv {
-        Some(path) => {
-            let mut w = BufWriter::new(create(path)?);
-            writeln!(w, "{}", ScanRow::csv_header(&config.drones))?;
-            Some(w)
-        }
-        None => None,
-    };
-    let mut station = GroundStation::new(config)?;
+    let mut station = GroundStation::new(args.station_config()?)?;
+    let mut links = Links::open(&args, &station.config().drones)?;
     let c = station.config();
     say(format!(
         "mission {:?} to goal {:?} r={} with drones {:?}",
         c.task, c.goal, c.goal_radius, c.drones
     ));
-
-    let mut now = 0.0;
-    let mut last_scan_wall = Instant::now();
-    let mut sensor_silent = false;
-    loop {
-        let mut scan = None;
-        for frame in fleet.poll(now, Duration::from_millis(5))? {
-            scan = station
-                .hear(frame.header.system_id, &frame.message)
-                .or(scan);
-        }
-        drain_uplinks(&mut uplinks, &mut station, now)?;
-        fleet.tick(now)?;
-        let Some(scan) = scan else {
-            if last_scan_wall.elapsed().as_secs_f64() > args.idle_timeout {
-                if station.scans() == 0 {
-                    bail!(
-                        "no sensor scan for {} s (is the simulator running and sending to {}?)",
-                        args.idle_timeout,
-                        args.fleet
-                    );
-                }
-                // The sensor went silent (the simulation ended, or the sensor failed).
-                say(format!(
-                    "no sensor scan for {} s, stopping",
-                    args.idle_timeout
-                ));
-                sensor_silent = true;
-                break;
-            }
-            continue;
-        };
-        last_scan_wall = Instant::now();
-        now = scan.time_s;
-        let reply = station.on_scan(
-            &scan,
-            &drone_reports(fleet.fleet(), &station.config().drones),
-        )?;
-        reply.events.iter().for_each(|e| say(e.to_string()));
-        for (id, frames) in &reply.uplink {
-            send_up(&mut uplinks, *id, frames)?;
-        }
-        // A sensor that never spoke has no address yet; a real one need not listen.
-        let _ = fleet.send_to(station.config().sensor_system_id, &reply.scan_ack);
-        if let Some(w) = &mut csv {
-            writeln!(w, "{}", reply.row.csv())?;
-        }
-        if reply.finished {
-            break;
-        }
-    }
-    fleet.flush_log()?;
-    if let Some(w) = &mut csv {
+    let sensor_silent = links.fly(&mut station, &args)?;
+    links.fleet.flush_log()?;
+    if let Some(w) = &mut links.csv {
         w.flush()?;
     }
     let mut summary = serde_json::to_value(station.summary())?;
     summary["sensor_silent"] = sensor_silent.into();
-    summary["fleet_frames_dropped"] = fleet.stats().dropped_frames().into();
+    summary["fleet_frames_dropped"] = links.fleet.stats().dropped_frames().into();
     println!("{summary}");
     Ok(())
 }
 
+/// The station's sockets and files: the fleet link, one uplink per drone, the CSV log.
+struct Links {
+    fleet: GroundLink,
+    uplinks: Vec<(u8, GroundLink)>,
+    csv: Option<BufWriter<File>>,
+}
+
+impl Links {
+    fn open(args: &MissionArgs, drone_ids: &[u8]) -> Result<Self> {
+        let key = read_key(args.key.as_ref())?;
+        let fleet_key = read_key(args.fleet_key.as_ref())?;
+        let mut fleet = GroundLink::open(&args.fleet, link_config(&fleet_key, 0))
+            .with_context(|| format!("opening the fleet link {}", args.fleet))?;
+        if let Some(path) = &args.tlog {
+            fleet.log_to(Box::new(BufWriter::new(create(path)?)));
+        }
+        let mut uplinks = Vec::new();
+        for (i, (id, address)) in args.drone_addresses()?.iter().enumerate() {
+            let link = GroundLink::open(address, link_config(&key, i as u8 + 1))
+                .with_context(|| format!("opening the uplink {address} of drone {id}"))?;
+            uplinks.push((*id, link));
+        }
+        let csv = match &args.csv {
+            Some(path) => {
+                let mut w = BufWriter::new(create(path)?);
+                writeln!(w, "{}", ScanRow::csv_header(drone_ids))?;
+                Some(w)
+            }
+            None => None,
+        };
+        Ok(Self {
+            fleet,
+            uplinks,
+            csv,
+        })
+    }
+
+    /// Move bytes between the links and the station until the mission is over; whether the
+    /// sensor went silent first.
+    fn fly(&mut self, station: &mut GroundStation, args: &MissionArgs) -> Result<bool> {
+        let mut now = 0.0;
+        let mut last_scan_wall = Instant::now();
+        loop {
+            let mut scan = None;
+            for frame in self.fleet.poll(now, Duration::from_millis(5))? {
+                scan = station
+                    .hear(frame.header.system_id, &frame.message)
+                    .or(scan);
+            }
+            drain_uplinks(&mut self.uplinks, station, now)?;
+            self.fleet.tick(now)?;
+            let Some(scan) = scan else {
+                if last_scan_wall.elapsed().as_secs_f64() > args.idle_timeout {
+                    if station.scans() == 0 {
+                        bail!(
+                            "no sensor scan for {} s (is the simulator running and sending to {}?)",
+                            args.idle_timeout,
+                            args.fleet
+                        );
+                    }
+                    // The sensor went silent (the simulation ended, or the sensor failed).
+                    say(format!(
+                        "no sensor scan for {} s, stopping",
+                        args.idle_timeout
+                    ));
+                    return Ok(true);
+                }
+                continue;
+            };
+            last_scan_wall = Instant::now();
+            now = scan.time_s;
+            let drones = drone_reports(self.fleet.fleet(), &station.config().drones);
+            let reply = station.on_scan(&scan, &drones)?;
+            reply.events.iter().for_each(|e| say(e.to_string()));
+            for (id, frames) in &reply.uplink {
+                send_up(&mut self.uplinks, *id, frames)?;
+            }
+            // A sensor that never spoke has no address yet; a real one need not listen.
+            let _ = self
+                .fleet
+                .send_to(station.config().sensor_system_id, &reply.scan_ack);
+            if let Some(w) = &mut self.csv {
+                writeln!(w, "{}", reply.row.csv())?;
+            }
+            if reply.finished {
+                return Ok(false);
+            }
+        }
+    }
+}
+
 /// One whole console line (stderr is shared with the other mission processes).
 fn say(line: String) {
-    let mut err = std::io::stderr().lock();
-    let _ = writeln!(err, "ground: {line}");
+    // One write call per line: unbuffered stderr would otherwise write the pieces separately
+    // and another process's line could land in between.
+    let _ = std::io::stderr().write_all(format!("ground: {line}\n").as_bytes());
 }
 
 fn create(path: &std::path::Path) -> Result<File> {

@@ -30,7 +30,9 @@
 //! ```
 
 pub mod autopilot;
+pub mod console;
 pub mod faults;
+pub mod launch;
 pub mod mission;
 pub mod node;
 pub mod sensor;

@@ -1,0 +1,181 @@
+//! The mission's other processes: the command lines of the ground station and of one onboard
+//! daemon per drone, built from the SITL world they will fly in, and a guard that ends a
+//! child process when dropped. Building a command starts nothing; [`spawn`] does.
+
+use std::fs::File;
+use std::io;
+use std::net::SocketAddr;
+use std::path::PathBuf;
+use std::process::{Child, Command, Stdio};
+
+use skyherd_onboard::Task;
+use skyherd_sim::{Scenario, World};
+
+/// Where the mission's files and programs are.
+#[derive(Clone, Debug)]
+pub struct LaunchPlan {
+    /// The `skyherd-ground` executable.
+    pub ground: PathBuf,
+    /// The `skyherd-onboard` executable.
+    pub daemon: PathBuf,
+    /// Run each daemon through this command line (e.g. `qemu-aarch64 -L /usr/aarch64-linux-gnu`).
+    pub daemon_wrapper: Option<String>,
+    /// The model file the daemons fly.
+    pub model: PathBuf,
+    /// The uplink signing key file.
+    pub key: PathBuf,
+    /// Output folder (ground `.tlog` and CSV, daemon logs).
+    pub out: PathBuf,
+    /// Fault injection for the ground: `START,DURATION` of uplink cut.
+    pub cut_uplink: Option<String>,
+}
+
+/// The ground station's command: it listens for the fleet at `fleet`, and sends each drone's
+/// uplink to `127.0.0.1:uplink_ports[i]`. Its stdout (the JSON summary) is piped.
+pub fn ground_command(
+    plan: &LaunchPlan,
+    scenario: &Scenario,
+    world: &World,
+    fleet: SocketAddr,
+    uplink_ports: &[u16],
+    scan_period_s: f64,
+) -> Command {
+    let task = match world.task {
+        Task::Driving => "driving",
+        Task::Collecting => "collecting",
+    };
+    let mut cmd = Command::new(&plan.ground);
+    cmd.arg("mission")
+        .arg("--fleet")
+        .arg(format!("udpin:{fleet}"))
+        .args(["--task", task])
+        .arg("--goal")
+        .arg(format!("{},{}", world.goal.center[0], world.goal.center[1]))
+        .arg("--goal-radius")
+        .arg(world.goal.radius.to_string())
+        .arg("--area")
+        .arg(format!(
+            "{},{},{}",
+            world.area.width, world.area.depth, world.area.ceiling
+        ))
+        .arg("--max-speed")
+        .arg(scenario.limits.herder.to_string())
+        .arg("--targets")
+        .arg(world.targets.len().to_string())
+        .arg("--measurement-std")
+        .arg(scenario.noise.sensing_std.max(1e-3).to_string())
+        .arg("--scan-period")
+        .arg(scan_period_s.to_string())
+        .arg("--key")
+        .arg(&plan.key)
+        .arg("--tlog")
+        .arg(plan.out.join("ground.tlog"))
+        .arg("--csv")
+        .arg(plan.out.join("ground.csv"))
+        // The ground stops one wall second after the last scan and prints its summary.
+        .args(["--idle-timeout", "1"])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::inherit());
+    if let Some(cut) = &plan.cut_uplink {
+        cmd.arg("--cut-uplink").arg(cut);
+    }
+    for (i, port) in uplink_ports.iter().enumerate() {
+        cmd.arg("--drone")
+            .arg(format!("{}=udpout:127.0.0.1:{port}", i + 1));
+    }
+    cmd
+}
+
+/// Drone `index`'s daemon (system id `index + 1`): it flies the autopilot at `autopilot` and
+/// hears the ground on `127.0.0.1:uplink_port`, on the simulator's clock. Its log goes to
+/// `daemon-{index + 1}.log` in the output folder.
+///
+/// # Errors
+/// When the log file cannot be created or the wrapper is empty.
+pub fn daemon_command(
+    plan: &LaunchPlan,
+    scenario: &Scenario,
+    index: usize,
+    autopilot: SocketAddr,
+    uplink_port: u16,
+) -> io::Result<Command> {
+    let log = File::create(plan.out.join(format!("daemon-{}.log", index + 1)))?;
+    let mut cmd = match &plan.daemon_wrapper {
+        Some(wrapper) => {
+            let mut parts = wrapper.split_whitespace();
+            let program = parts.next().ok_or_else(|| {
+                io::Error::new(io::ErrorKind::InvalidInput, "--daemon-wrapper is empty")
+            })?;
+            let mut cmd = Command::new(program);
+            cmd.args(parts).arg(&plan.daemon);
+            cmd
+        }
+        None => Command::new(&plan.daemon),
+    };
+    cmd.arg("run")
+        .arg("--model")
+        .arg(&plan.model)
+        .arg("--system-id")
+        .arg((index + 1).to_string())
+        .arg("--herder-index")
+        .arg(index.to_string())
+        .arg("--autopilot")
+        .arg(format!("udpout:{autopilot}"))
+        .arg("--ground")
+        .arg(format!("udpin:127.0.0.1:{uplink_port}"))
+        .arg("--key")
+        .arg(&plan.key)
+        .arg("--sim-clock")
+        .arg("--max-speed")
+        .arg(scenario.limits.herder.to_string())
+        .stdout(Stdio::null())
+        .stderr(log);
+    Ok(cmd)
+}
+
+/// A child process that is killed when dropped.
+#[derive(Debug)]
+pub struct Guard(Option<Child>);
+
+impl Guard {
+    /// The child, while it runs.
+    pub fn child(&mut self) -> Option<&mut Child> {
+        self.0.as_mut()
+    }
+}
+
+impl Drop for Guard {
+    fn drop(&mut self) {
+        if let Some(child) = &mut self.0 {
+            let _ = child.kill();
+            let _ = child.wait();
+        }
+    }
+}
+
+/// Start `command`, killed when the guard drops.
+///
+/// # Errors
+/// When the program cannot be started.
+pub fn spawn(mut command: Command) -> io::Result<Guard> {
+    command.spawn().map(|child| Guard(Some(child)))
+}
+
+/// `name` beside the running program (the workspace's binaries share one folder).
+///
+/// # Errors
+/// When the program cannot be located or `name` is not there.
+pub fn sibling(name: &str) -> io::Result<PathBuf> {
+    let me = std::env::current_exe()?;
+    let path = me.with_file_name(name);
+    if !path.exists() {
+        return Err(io::Error::new(
+            io::ErrorKind::NotFound,
+            format!(
+                "{name} not found beside {} (build it: cargo build --release -p skyherd-ground -p skyherd-daemon)",
+                me.display()
+            ),
+        ));
+    }
+    Ok(path)
+}
