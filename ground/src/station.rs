@@ -169,7 +169,7 @@ impl fmt::Display for StationEvent {
                 phase: Phase::Complete { started_at, .. },
             } => write!(
                 f,
-                "t={at:.1}s mission complete ({:.1} s after the start), holding",
+                "t={at:.1}s mission complete ({:.1} s after the start command), holding",
                 at - started_at
             ),
             Self::Ended {

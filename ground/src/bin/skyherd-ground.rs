@@ -142,8 +142,8 @@ fn main() -> Result<()> {
     let mut links = Links::open(&args, &station.config().drones)?;
     let c = station.config();
     say(format!(
-        "mission {:?} to goal {:?} r={} with drones {:?}",
-        c.task, c.goal, c.goal_radius, c.drones
+        "mission {:?} to goal ({:.1}, {:.1}) r={:.2} m with drones {:?}",
+        c.task, c.goal[0], c.goal[1], c.goal_radius, c.drones
     ));
     let sensor_silent = links.fly(&mut station, &args)?;
     links.fleet.flush_log()?;

@@ -39,118 +39,136 @@ struct Cli {
 #[derive(Subcommand)]
 enum Command {
     /// Run one episode and write every step's state as JSON Lines.
-    Run {
-        /// A preset (paper-drive, paper-collect, indoor) or a scenario TOML file.
-        #[arg(long, default_value = "paper-drive")]
-        scenario: String,
-        /// Policy: strombom, ctrl, lama, farthest, or `model:PATH` (a quantized model file).
-        #[arg(long, default_value = "strombom")]
-        policy: String,
-        /// Episode seed (default: the scenario's).
-        #[arg(long)]
-        seed: Option<u64>,
-        /// Override N.
-        #[arg(long)]
-        targets: Option<usize>,
-        /// Override M (a count or `adaptive`).
-        #[arg(long)]
-        herders: Option<HerderCount>,
-        /// Trace file (JSON Lines); none if omitted.
-        #[arg(long)]
-        out: Option<PathBuf>,
-    },
+    Run(RunArgs),
     /// Read a state (JSON), apply exactly one noise-free step, print it in the same schema.
-    Step {
-        /// State file; `-` reads stdin.
-        #[arg(long)]
-        state: PathBuf,
-    },
+    Step(StepArgs),
     /// Sweep ⟨task, method, M, N⟩ with fixed seeds and test-time noise.
-    Eval {
-        /// Tasks, comma separated.
-        #[arg(long, value_delimiter = ',', default_value = "driving,collecting")]
-        tasks: Vec<String>,
-        /// Methods, comma separated: baselines and `model:PATH` model files.
-        #[arg(
-            long,
-            value_delimiter = ',',
-            default_value = "strombom,ctrl,lama,farthest"
-        )]
-        methods: Vec<String>,
-        /// Target counts, comma separated.
-        #[arg(
-            long,
-            value_delimiter = ',',
-            default_value = "1,2,4,8,16,32,64,128,256,512,1024"
-        )]
-        targets: Vec<usize>,
-        /// Herder settings, comma separated (counts or `adaptive`).
-        #[arg(long, value_delimiter = ',', default_value = "1,4,adaptive")]
-        herders: Vec<HerderCount>,
-        /// Episodes per configuration.
-        #[arg(long, default_value_t = 100)]
-        episodes: usize,
-        /// Base of the episode seeds.
-        #[arg(long, default_value_t = 0)]
-        seed: u64,
-        /// Override the presets' step limit.
-        #[arg(long)]
-        step_limit: Option<u64>,
-        /// Run shard i of n (`i/n`, 0-based).
-        #[arg(long, default_value = "0/1")]
-        shard: String,
-        /// Worker threads (default: all cores).
-        #[arg(long)]
-        threads: Option<usize>,
-        /// Write results.csv, results.json, results.md (and plots with --plots) here.
-        #[arg(long)]
-        out_dir: Option<PathBuf>,
-        /// Also draw the Fig. 3 plots into --out-dir.
-        #[arg(long)]
-        plots: bool,
-        /// Print the summary of the single configuration as JSON on stdout.
-        #[arg(long)]
-        json: bool,
-    },
+    Eval(EvalArgs),
     /// Merge results.json files written by `eval` (for example the baselines' and a model's),
     /// draw the Fig. 3 plots of all their methods and write the merged results.md/.csv.
-    PlotFig3 {
-        /// results.json files from `eval`, comma separated or repeated.
-        #[arg(long, value_delimiter = ',', required = true)]
-        results: Vec<PathBuf>,
-        /// Output directory.
-        #[arg(long)]
-        out_dir: PathBuf,
-        /// Also write comparison.md: this method beside the best other method per configuration.
-        #[arg(long)]
-        compare: Option<String>,
-    },
+    PlotFig3(PlotFig3Args),
     /// Run one driving episode and draw its Fig. 4-style trajectory (PNG + SVG).
-    PlotTrajectory {
-        /// Scenario preset or file.
-        #[arg(long, default_value = "paper-drive")]
-        scenario: String,
-        /// Policy (a baseline or `model:PATH`).
-        #[arg(long, default_value = "farthest")]
-        policy: String,
-        /// Episode seed.
-        #[arg(long, default_value_t = 0)]
-        seed: u64,
-        /// N.
-        #[arg(long, default_value_t = 8)]
-        targets: usize,
-        /// M.
-        #[arg(long, default_value_t = 4)]
-        herders: usize,
-        /// Output path without extension.
-        #[arg(long)]
-        out: PathBuf,
-    },
+    PlotTrajectory(PlotTrajectoryArgs),
     /// Print a preset as complete TOML.
-    Scenario {
-        /// Preset name.
-        preset: String,
-    },
+    Scenario(ScenarioArgs),
+}
+
+#[derive(clap::Args, Debug)]
+struct RunArgs {
+    /// A preset (paper-drive, paper-collect, indoor) or a scenario TOML file.
+    #[arg(long, default_value = "paper-drive")]
+    scenario: String,
+    /// Policy: strombom, ctrl, lama, farthest, or `model:PATH` (a quantized model file).
+    #[arg(long, default_value = "strombom")]
+    policy: String,
+    /// Episode seed (default: the scenario's).
+    #[arg(long)]
+    seed: Option<u64>,
+    /// Override N.
+    #[arg(long)]
+    targets: Option<usize>,
+    /// Override M (a count or `adaptive`).
+    #[arg(long)]
+    herders: Option<HerderCount>,
+    /// Trace file (JSON Lines); none if omitted.
+    #[arg(long)]
+    out: Option<PathBuf>,
+}
+
+#[derive(clap::Args, Debug)]
+struct StepArgs {
+    /// State file; `-` reads stdin.
+    #[arg(long)]
+    state: PathBuf,
+}
+
+#[derive(clap::Args, Debug)]
+struct EvalArgs {
+    /// Tasks, comma separated.
+    #[arg(long, value_delimiter = ',', default_value = "driving,collecting")]
+    tasks: Vec<String>,
+    /// Methods, comma separated: baselines and `model:PATH` model files.
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "strombom,ctrl,lama,farthest"
+    )]
+    methods: Vec<String>,
+    /// Target counts, comma separated.
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "1,2,4,8,16,32,64,128,256,512,1024"
+    )]
+    targets: Vec<usize>,
+    /// Herder settings, comma separated (counts or `adaptive`).
+    #[arg(long, value_delimiter = ',', default_value = "1,4,adaptive")]
+    herders: Vec<HerderCount>,
+    /// Episodes per configuration.
+    #[arg(long, default_value_t = 100)]
+    episodes: usize,
+    /// Base of the episode seeds.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Override the presets' step limit.
+    #[arg(long)]
+    step_limit: Option<u64>,
+    /// Run shard i of n (`i/n`, 0-based).
+    #[arg(long, default_value = "0/1")]
+    shard: String,
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    threads: Option<usize>,
+    /// Write results.csv, results.json, results.md (and plots with --plots) here.
+    #[arg(long)]
+    out_dir: Option<PathBuf>,
+    /// Also draw the Fig. 3 plots into --out-dir.
+    #[arg(long)]
+    plots: bool,
+    /// Print the summary of the single configuration as JSON on stdout.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(clap::Args, Debug)]
+struct PlotFig3Args {
+    /// results.json files from `eval`, comma separated or repeated.
+    #[arg(long, value_delimiter = ',', required = true)]
+    results: Vec<PathBuf>,
+    /// Output directory.
+    #[arg(long)]
+    out_dir: PathBuf,
+    /// Also write comparison.md: this method beside the best other method per configuration.
+    #[arg(long)]
+    compare: Option<String>,
+}
+
+#[derive(clap::Args, Debug)]
+struct PlotTrajectoryArgs {
+    /// Scenario preset or file.
+    #[arg(long, default_value = "paper-drive")]
+    scenario: String,
+    /// Policy (a baseline or `model:PATH`).
+    #[arg(long, default_value = "farthest")]
+    policy: String,
+    /// Episode seed.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// N.
+    #[arg(long, default_value_t = 8)]
+    targets: usize,
+    /// M.
+    #[arg(long, default_value_t = 4)]
+    herders: usize,
+    /// Output path without extension.
+    #[arg(long)]
+    out: PathBuf,
+}
+
+#[derive(clap::Args, Debug)]
+struct ScenarioArgs {
+    /// Preset name.
+    preset: String,
 }
 
 /// The policies the command line knows: a baseline by name, or `model:PATH`, a quantized model file
@@ -167,129 +185,148 @@ fn policy_factory(name: &str) -> Result<Arc<dyn PolicyFactory>> {
 
 fn main() -> Result<()> {
     match Cli::parse().command {
-        Command::Run {
-            scenario,
-            policy,
-            seed,
-            targets,
-            herders,
-            out,
-        } => run(&scenario, &policy, seed, targets, herders, out.as_deref()),
-        Command::Step { state } => {
-            let text = if state.as_os_str() == "-" {
-                std::io::read_to_string(std::io::stdin()).context("reading stdin")?
-            } else {
-                fs::read_to_string(&state)
-                    .with_context(|| format!("reading {}", state.display()))?
-            };
-            let next = step_state_json(&text)?;
-            println!("{}", serde_json::to_string_pretty(&next)?);
-            Ok(())
-        }
-        Command::Eval {
-            tasks,
-            methods,
-            targets,
-            herders,
-            episodes,
-            seed,
-            step_limit,
-            shard,
-            threads,
-            out_dir,
-            plots,
-            json,
-        } => {
-            let spec = SweepSpec {
-                tasks: tasks
-                    .iter()
-                    .map(|t| parse_task(t).ok_or_else(|| anyhow!("unknown task `{t}`")))
-                    .collect::<Result<_>>()?,
-                methods: methods
-                    .iter()
-                    .map(|m| policy_factory(m))
-                    .collect::<Result<_>>()?,
-                herders,
-                targets,
-                episodes,
-                base_seed: seed,
-                step_limit,
-                shard: parse_shard(&shard)?,
-            };
-            eval(spec, threads, out_dir.as_deref(), plots, json)
-        }
-        Command::PlotFig3 {
-            results,
-            out_dir,
-            compare,
-        } => {
-            let mut merged: Vec<ConfigResult> = Vec::new();
-            for path in &results {
-                let text = fs::read_to_string(path)
-                    .with_context(|| format!("reading {}", path.display()))?;
-                let part: Vec<ConfigResult> = serde_json::from_str(&text)
-                    .with_context(|| format!("{} is not an eval results.json", path.display()))?;
-                merged.extend(part);
-            }
-            fs::create_dir_all(&out_dir)?;
-            for f in plot::fig3(&merged, &out_dir)? {
-                eprintln!("wrote {}", f.display());
-            }
-            if results.len() > 1 {
-                fs::write(out_dir.join("results.md"), to_markdown(&merged))?;
-                fs::write(out_dir.join("results.csv"), to_csv(&merged))?;
-            }
-            if let Some(method) = compare {
-                if !merged.iter().any(|r| r.config.method == method) {
-                    bail!("no results for method `{method}` to compare");
-                }
-                fs::write(
-                    out_dir.join("comparison.md"),
-                    comparison_markdown(&merged, &method),
-                )?;
-            }
-            Ok(())
-        }
-        Command::PlotTrajectory {
-            scenario,
-            policy,
-            seed,
-            targets,
-            herders,
-            out,
-        } => {
-            let mut s = Scenario::from_arg(&scenario)?;
-            s.targets = targets;
-            s.herders = HerderCount::Fixed(herders);
-            s.validate()?;
-            let mut env = Env::new(s)?;
-            let factory = policy_factory(&policy)?;
-            let name = factory.name();
-            let mut p = factory.make();
-            let mut states: Vec<World> = Vec::new();
-            let summary = run_episode(&mut env, p.as_mut(), seed, |w, _| states.push(w.clone()))?;
-            let title = format!(
-                "{name}: {herders} herders, {targets} targets, seed {seed}: {} in {} s",
-                if summary.success {
-                    "success"
-                } else {
-                    "failure"
-                },
-                summary.time_s
-            );
-            if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
-                fs::create_dir_all(dir)?;
-            }
-            for f in plot::trajectory(&states, &title, &out)? {
-                eprintln!("wrote {}", f.display());
-            }
-            Ok(())
-        }
-        Command::Scenario { preset } => {
-            print!("{}", Scenario::preset(&preset)?.to_toml()?);
-            Ok(())
-        }
+        Command::Run(args) => run_command(args),
+        Command::Step(args) => step_command(args),
+        Command::Eval(args) => eval_command(args),
+        Command::PlotFig3(args) => plot_fig3_command(args),
+        Command::PlotTrajectory(args) => plot_trajectory_command(args),
+        Command::Scenario(args) => scenario_command(args),
     }
+}
+
+fn run_command(args: RunArgs) -> Result<()> {
+    let RunArgs {
+        scenario,
+        policy,
+        seed,
+        targets,
+        herders,
+        out,
+    } = args;
+    run(&scenario, &policy, seed, targets, herders, out.as_deref())
+}
+
+fn step_command(args: StepArgs) -> Result<()> {
+    let StepArgs { state } = args;
+    let text = if state.as_os_str() == "-" {
+        std::io::read_to_string(std::io::stdin()).context("reading stdin")?
+    } else {
+        fs::read_to_string(&state).with_context(|| format!("reading {}", state.display()))?
+    };
+    let next = step_state_json(&text)?;
+    println!("{}", serde_json::to_string_pretty(&next)?);
+    Ok(())
+}
+
+fn eval_command(args: EvalArgs) -> Result<()> {
+    let EvalArgs {
+        tasks,
+        methods,
+        targets,
+        herders,
+        episodes,
+        seed,
+        step_limit,
+        shard,
+        threads,
+        out_dir,
+        plots,
+        json,
+    } = args;
+    let spec = SweepSpec {
+        tasks: tasks
+            .iter()
+            .map(|t| parse_task(t).ok_or_else(|| anyhow!("unknown task `{t}`")))
+            .collect::<Result<_>>()?,
+        methods: methods
+            .iter()
+            .map(|m| policy_factory(m))
+            .collect::<Result<_>>()?,
+        herders,
+        targets,
+        episodes,
+        base_seed: seed,
+        step_limit,
+        shard: parse_shard(&shard)?,
+    };
+    eval(spec, threads, out_dir.as_deref(), plots, json)
+}
+
+fn plot_fig3_command(args: PlotFig3Args) -> Result<()> {
+    let PlotFig3Args {
+        results,
+        out_dir,
+        compare,
+    } = args;
+    let mut merged: Vec<ConfigResult> = Vec::new();
+    for path in &results {
+        let text =
+            fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+        let part: Vec<ConfigResult> = serde_json::from_str(&text)
+            .with_context(|| format!("{} is not an eval results.json", path.display()))?;
+        merged.extend(part);
+    }
+    fs::create_dir_all(&out_dir)?;
+    for f in plot::fig3(&merged, &out_dir)? {
+        eprintln!("wrote {}", f.display());
+    }
+    if results.len() > 1 {
+        fs::write(out_dir.join("results.md"), to_markdown(&merged))?;
+        fs::write(out_dir.join("results.csv"), to_csv(&merged))?;
+    }
+    if let Some(method) = compare {
+        if !merged.iter().any(|r| r.config.method == method) {
+            bail!("no results for method `{method}` to compare");
+        }
+        fs::write(
+            out_dir.join("comparison.md"),
+            comparison_markdown(&merged, &method),
+        )?;
+    }
+    Ok(())
+}
+
+fn plot_trajectory_command(args: PlotTrajectoryArgs) -> Result<()> {
+    let PlotTrajectoryArgs {
+        scenario,
+        policy,
+        seed,
+        targets,
+        herders,
+        out,
+    } = args;
+    let mut s = Scenario::from_arg(&scenario)?;
+    s.targets = targets;
+    s.herders = HerderCount::Fixed(herders);
+    s.validate()?;
+    let mut env = Env::new(s)?;
+    let factory = policy_factory(&policy)?;
+    let name = factory.name();
+    let mut p = factory.make();
+    let mut states: Vec<World> = Vec::new();
+    let summary = run_episode(&mut env, p.as_mut(), seed, |w, _| states.push(w.clone()))?;
+    let title = format!(
+        "{name}: {herders} herders, {targets} targets, seed {seed}: {} in {} s",
+        if summary.success {
+            "success"
+        } else {
+            "failure"
+        },
+        summary.time_s
+    );
+    if let Some(dir) = out.parent().filter(|d| !d.as_os_str().is_empty()) {
+        fs::create_dir_all(dir)?;
+    }
+    for f in plot::trajectory(&states, &title, &out)? {
+        eprintln!("wrote {}", f.display());
+    }
+    Ok(())
+}
+
+fn scenario_command(args: ScenarioArgs) -> Result<()> {
+    let ScenarioArgs { preset } = args;
+    print!("{}", Scenario::preset(&preset)?.to_toml()?);
+    Ok(())
 }
 
 fn parse_shard(s: &str) -> Result<(usize, usize)> {

@@ -38,98 +38,116 @@ struct Cli {
 #[derive(Subcommand)]
 enum Command {
     /// Train (warm start, MTDDPG, held-out evaluation) as configured.
-    Train {
-        /// The TOML config.
-        #[arg(long)]
-        config: PathBuf,
-        /// Continue from `<output_dir>/last.safetensors`.
-        #[arg(long)]
-        resume: bool,
-    },
+    Train(TrainArgs),
     /// Run the evolution stage alone (`[evolution]` of the config) on a checkpoint, writing
     /// `<output_dir>/evolved.safetensors`; `train` runs it after MTDDPG.
-    Evolve {
-        /// The TOML config.
-        #[arg(long)]
-        config: PathBuf,
-        /// The checkpoint to start from [default: `<output_dir>/best.safetensors`].
-        #[arg(long)]
-        checkpoint: Option<PathBuf>,
-    },
+    Evolve(EvolveArgs),
     /// Distil a rule into a float actor where the rule herds better (`skyherd_trainer::distill`:
     /// DAgger on the config's teach scenarios, anchored to the actor's own actions on its keep
     /// scenarios), writing the student as an actor file.
-    Distill {
-        /// The distillation TOML config.
-        #[arg(long)]
-        config: PathBuf,
-        /// The actor to start from (an actor file or a checkpoint).
-        #[arg(long)]
-        actor: PathBuf,
-        /// The student actor file to write.
-        #[arg(long)]
-        out: PathBuf,
-        /// Worker threads.
-        #[arg(long, default_value_t = 2)]
-        threads: usize,
-    },
+    Distill(DistillArgs),
     /// Quantize a checkpoint's actor into a quantized model file and check it against the float
     /// actor.
-    Export {
-        /// A checkpoint (`best.safetensors` or `last.safetensors`) or an actor file.
-        #[arg(long)]
-        checkpoint: PathBuf,
-        /// The model file to write.
-        #[arg(long)]
-        out: PathBuf,
-        /// Episode steps recorded per calibration scenario.
-        #[arg(long, default_value_t = 800)]
-        calibration_steps: u64,
-        /// Calibration episodes per scenario.
-        #[arg(long, default_value_t = 6)]
-        calibration_episodes: usize,
-        /// Quantization-aware fine-tuning steps before quantizing (`skyherd_trainer::qat`; 0:
-        /// quantize the checkpoint's actor as it is). The quantized model is compared with, and
-        /// `--actor-out` writes, the checkpoint's actor.
-        #[arg(long, default_value_t = 4_000)]
-        qat_steps: usize,
-        /// Also write the float actor here (the reference the parity test compares against).
-        #[arg(long)]
-        actor_out: Option<PathBuf>,
-    },
+    Export(ExportArgs),
     /// Redraw the learning-curve PNG of a training log.
-    Plot {
-        /// The run's `log.csv`.
-        #[arg(long)]
-        log: PathBuf,
-        /// The PNG to write.
-        #[arg(long)]
-        out: PathBuf,
-    },
+    Plot(PlotArgs),
     /// Evaluate a quantized model file (as it flies) and optionally the baselines, with test noise.
-    Eval {
-        /// The model file.
-        #[arg(long)]
-        model: PathBuf,
-        /// Episodes per scenario.
-        #[arg(long, default_value_t = 20)]
-        episodes: usize,
-        /// First episode seed (held out from training).
-        #[arg(long, default_value_t = 2_000_000_000)]
-        seed_base: u64,
-        /// Also run the rule-based baselines (every `skyherd_sim::baseline::Method`).
-        #[arg(long)]
-        baselines: bool,
-        /// Also run this float actor (the export's `--actor-out`, or a checkpoint).
-        #[arg(long)]
-        actor: Option<PathBuf>,
-        /// Scenarios as `task:N:M` (M = 0 adaptive); default: a standard set.
-        #[arg(long, value_delimiter = ',')]
-        scenarios: Vec<String>,
-        /// Worker threads.
-        #[arg(long, default_value_t = 2)]
-        threads: usize,
-    },
+    Eval(EvalArgs),
+}
+
+#[derive(clap::Args, Debug)]
+struct TrainArgs {
+    /// The TOML config.
+    #[arg(long)]
+    config: PathBuf,
+    /// Continue from `<output_dir>/last.safetensors`.
+    #[arg(long)]
+    resume: bool,
+}
+
+#[derive(clap::Args, Debug)]
+struct EvolveArgs {
+    /// The TOML config.
+    #[arg(long)]
+    config: PathBuf,
+    /// The checkpoint to start from [default: `<output_dir>/best.safetensors`].
+    #[arg(long)]
+    checkpoint: Option<PathBuf>,
+}
+
+#[derive(clap::Args, Debug)]
+struct DistillArgs {
+    /// The distillation TOML config.
+    #[arg(long)]
+    config: PathBuf,
+    /// The actor to start from (an actor file or a checkpoint).
+    #[arg(long)]
+    actor: PathBuf,
+    /// The student actor file to write.
+    #[arg(long)]
+    out: PathBuf,
+    /// Worker threads.
+    #[arg(long, default_value_t = 2)]
+    threads: usize,
+}
+
+#[derive(clap::Args, Debug)]
+struct ExportArgs {
+    /// A checkpoint (`best.safetensors` or `last.safetensors`) or an actor file.
+    #[arg(long)]
+    checkpoint: PathBuf,
+    /// The model file to write.
+    #[arg(long)]
+    out: PathBuf,
+    /// Episode steps recorded per calibration scenario.
+    #[arg(long, default_value_t = 800)]
+    calibration_steps: u64,
+    /// Calibration episodes per scenario.
+    #[arg(long, default_value_t = 6)]
+    calibration_episodes: usize,
+    /// Quantization-aware fine-tuning steps before quantizing (`skyherd_trainer::qat`; 0:
+    /// quantize the checkpoint's actor as it is). The quantized model is compared with, and
+    /// `--actor-out` writes, the checkpoint's actor.
+    #[arg(long, default_value_t = 4_000)]
+    qat_steps: usize,
+    /// Also write the float actor here (the reference the parity test compares against).
+    #[arg(long)]
+    actor_out: Option<PathBuf>,
+}
+
+#[derive(clap::Args, Debug)]
+struct PlotArgs {
+    /// The run's `log.csv`.
+    #[arg(long)]
+    log: PathBuf,
+    /// The PNG to write.
+    #[arg(long)]
+    out: PathBuf,
+}
+
+#[derive(clap::Args, Debug)]
+struct EvalArgs {
+    /// The model file.
+    #[arg(long)]
+    model: PathBuf,
+    /// Episodes per scenario.
+    #[arg(long, default_value_t = 20)]
+    episodes: usize,
+    /// First episode seed (held out from training).
+    #[arg(long, default_value_t = 2_000_000_000)]
+    seed_base: u64,
+    /// Also run the rule-based baselines (every `skyherd_sim::baseline::Method`).
+    #[arg(long)]
+    baselines: bool,
+    /// Also run this float actor (the export's `--actor-out`, or a checkpoint).
+    #[arg(long)]
+    actor: Option<PathBuf>,
+    /// Scenarios as `task:N:M` (M = 0 adaptive); default: a standard set.
+    #[arg(long, value_delimiter = ',')]
+    scenarios: Vec<String>,
+    /// Worker threads.
+    #[arg(long, default_value_t = 2)]
+    threads: usize,
 }
 
 /// indicatif progress bar for the training phases.
@@ -197,241 +215,258 @@ fn print_evolution(e: &EvolutionOutcome) {
 }
 
 fn main() -> Result<()> {
-    let cli = Cli::parse();
-    match cli.command {
-        Command::Train { config, resume } => {
-            let config = TrainConfig::load(&config)?;
-            let resume_from = if resume {
-                let path = config.output_dir.join("last.safetensors");
-                let c = checkpoint::load(&path)
-                    .with_context(|| format!("resuming from {}", path.display()))?;
-                eprintln!(
-                    "resuming at {} env steps, {} updates",
-                    c.progress.env_steps, c.agent.updates
-                );
-                Some(c)
-            } else {
-                None
-            };
-            let started = Instant::now();
-            let mut bar = Bar { bar: None };
-            let outcome = train(&config, resume_from, &mut bar)?;
-            if let Some(b) = bar.bar.take() {
-                b.finish();
-            }
-            println!(
-                "done: {} env steps, {} episodes, {:.0} s this session ({:.0} s total), {:.2} ms per update",
-                outcome.progress.env_steps,
-                outcome.progress.episodes,
-                started.elapsed().as_secs_f64(),
-                outcome.progress.wall_time_s,
-                1e3 * outcome.seconds_per_update
-            );
-            println!(
-                "best: success {:.1}%, time {:.2}x lower bound -> {}",
-                100.0 * outcome.progress.best_success,
-                outcome.progress.best_time_ratio,
-                outcome.best_checkpoint.display()
-            );
-            print!("{}", markdown_table("float (last)", &outcome.last_eval));
-            if let Some(e) = &outcome.evolution {
-                print_evolution(e);
-            }
-        }
-        Command::Evolve {
-            config,
-            checkpoint: source,
-        } => {
-            let config = TrainConfig::load(&config)?;
-            let path = source.unwrap_or_else(|| config.output_dir.join("best.safetensors"));
-            let mut c = checkpoint::load(&path)
-                .with_context(|| format!("evolving from {}", path.display()))?;
-            // The stage's clock starts where the run's log ends, as in `train`.
-            if let Ok(rows) = read_log(&config.output_dir.join("log.csv")) {
-                let end = rows.iter().map(|r| r.wall_s).fold(0.0, f64::max);
-                c.progress.wall_time_s = c.progress.wall_time_s.max(end);
-            }
-            let pool = rayon::ThreadPoolBuilder::new()
-                .num_threads(config.training.threads)
-                .build()?;
-            let mut bar = Bar { bar: None };
-            let outcome = pool.install(|| evolve_checkpoint(&config, &c, &mut bar))?;
-            if let Some(b) = bar.bar.take() {
-                b.finish();
-            }
-            print_evolution(&outcome);
-        }
-        Command::Distill {
-            config,
-            actor,
-            out,
-            threads,
-        } => {
-            let text = std::fs::read_to_string(&config)
-                .with_context(|| format!("reading {}", config.display()))?;
-            let config: DistillConfig =
-                toml::from_str(&text).with_context(|| format!("parsing {}", config.display()))?;
-            let start = checkpoint::load_actor(&actor)
-                .with_context(|| format!("distilling from {}", actor.display()))?;
-            let pool = rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()?;
-            let t0 = std::time::Instant::now();
-            let outcome = pool.install(|| {
-                distill(&start, &config, |r| {
-                    let check = r.check.map_or(String::new(), |c| {
-                        format!(
-                            ", check {:.3} (success {:.0}%, time {:.2}x)",
-                            c.fitness,
-                            100.0 * c.success_rate,
-                            c.time_ratio
-                        )
-                    });
-                    println!(
-                        "round {}: {} teach + {} keep samples, teach success {:.0}%, keep success {:.0}%, MSE teach {:.5} keep {:.5}{check} ({:.0} s)",
-                        r.round,
-                        r.teach_samples,
-                        r.keep_samples,
-                        100.0 * r.teach_success,
-                        100.0 * r.keep_success,
-                        r.teach_loss,
-                        r.keep_loss,
-                        t0.elapsed().as_secs_f64()
-                    )
-                })
-            })?;
-            println!("kept round {}", outcome.best_round);
-            if let Some(dir) = out.parent() {
-                std::fs::create_dir_all(dir)?;
-            }
-            checkpoint::save_actor(&out, &outcome.actor)?;
-            println!("wrote {}", out.display());
-        }
-        Command::Export {
-            checkpoint: path,
-            out,
-            calibration_steps,
-            calibration_episodes,
-            qat_steps,
-            actor_out,
-        } => {
-            let actor = &checkpoint::load_actor(&path)
-                .with_context(|| format!("exporting {}", path.display()))?;
-            // Calibration and parity use different episodes (seeds) of the same scenarios.
-            let scenarios = calibration_scenarios();
-            let calibration = record_observations(
-                actor,
-                &scenarios,
-                calibration_episodes,
-                3_000_000_000,
-                calibration_steps,
-                2,
-            )?;
-            let max_speed = skyherd_sim::Scenario::paper_drive().limits.herder as f32;
-            let tuned = (qat_steps > 0).then(|| {
-                let config = skyherd_trainer::qat::QatConfig {
-                    steps: qat_steps,
-                    ..Default::default()
-                };
-                skyherd_trainer::qat::finetune(actor, &calibration, config)
-            });
-            let bytes = export(tuned.as_ref().unwrap_or(actor), max_speed, &calibration)?;
-            let held_out = record_observations(actor, &scenarios, 2, 3_100_000_000, 600, 3)?;
-            let on_calibration = parity(actor, &bytes, &calibration)?;
-            println!(
-                "parity on the calibration observations: RMS {:.4} per component, max {:.4}",
-                on_calibration.rms_component, on_calibration.max_component
-            );
-            let p = parity(actor, &bytes, &held_out)?;
-            if let Some(dir) = out.parent() {
-                std::fs::create_dir_all(dir)?;
-            }
-            std::fs::write(&out, &bytes)?;
-            if let Some(path) = actor_out {
-                if let Some(dir) = path.parent() {
-                    std::fs::create_dir_all(dir)?;
-                }
-                checkpoint::save_actor(&path, actor)?;
-                println!("wrote the float actor to {}", path.display());
-            }
-            println!(
-                "wrote {} ({} bytes), calibrated on {} observations",
-                out.display(),
-                bytes.len(),
-                calibration.len()
-            );
-            println!(
-                "parity on {} held-out observations: RMS {:.4} per component, {:.4} per vector, max {:.4} (units of max speed)",
-                p.samples, p.rms_component, p.rms_vector, p.max_component
-            );
-        }
-        Command::Plot { log, out } => {
-            skyherd_trainer::report::plot_curve(&read_log(&log)?, &out)?;
-            println!("wrote {}", out.display());
-        }
-        Command::Eval {
-            model,
-            episodes,
-            seed_base,
-            baselines,
-            actor: float_actor,
-            scenarios,
-            threads,
-        } => {
-            let float_actor = float_actor
-                .map(|p| checkpoint::load_actor(&p))
-                .transpose()?;
-            let bytes = std::fs::read(&model)?;
-            let actor = Actor::from_bytes(&bytes)
-                .map_err(|e| anyhow::anyhow!("{}: {e:?}", model.display()))?;
-            let scenarios: Vec<EvalScenario> = if scenarios.is_empty() {
-                [
-                    "driving:16:4",
-                    "driving:64:4",
-                    "driving:256:0",
-                    "collecting:16:4",
-                    "collecting:64:4",
-                ]
-                .iter()
-                .map(|s| parse_scenario(s))
-                .collect::<Result<_>>()?
-            } else {
-                scenarios
-                    .iter()
-                    .map(|s| parse_scenario(s))
-                    .collect::<Result<_>>()?
-            };
-            let pool = rayon::ThreadPoolBuilder::new()
-                .num_threads(threads)
-                .build()?;
-            println!(
-                "| scenario | method | episodes | success | time (s) | time / bound | path (m) |"
-            );
-            println!("|---|---|---|---|---|---|---|");
-            // Rows are labelled with the model file's name (`mtddpg-v3` for models/mtddpg-v3.skym).
-            let name = model
-                .file_stem()
-                .map_or_else(|| "model".to_owned(), |s| s.to_string_lossy().into_owned());
-            pool.install(|| -> Result<()> {
-                let rows =
-                    evaluate_flat(&scenarios, episodes, seed_base, || ActorPolicy::new(actor))?;
-                print!("{}", markdown_table(&format!("{name} (quantized)"), &rows));
-                if let Some(float) = &float_actor {
-                    let rows =
-                        evaluate_flat(&scenarios, episodes, seed_base, || ActorPolicy::new(float))?;
-                    print!("{}", markdown_table(&format!("{name} (float)"), &rows));
-                }
-                if baselines {
-                    for method in Method::ALL {
-                        let rows = evaluate_flat(&scenarios, episodes, seed_base, || {
-                            RulePolicy::new(method)
-                        })?;
-                        print!("{}", markdown_table(method.as_str(), &rows));
-                    }
-                }
-                Ok(())
-            })?;
-        }
+    match Cli::parse().command {
+        Command::Train(args) => run_train(args),
+        Command::Evolve(args) => run_evolve(args),
+        Command::Distill(args) => run_distill(args),
+        Command::Export(args) => run_export(args),
+        Command::Plot(args) => run_plot(args),
+        Command::Eval(args) => run_eval(args),
     }
+}
+
+fn run_train(args: TrainArgs) -> Result<()> {
+    let TrainArgs { config, resume } = args;
+    let config = TrainConfig::load(&config)?;
+    let resume_from = if resume {
+        let path = config.output_dir.join("last.safetensors");
+        let c =
+            checkpoint::load(&path).with_context(|| format!("resuming from {}", path.display()))?;
+        eprintln!(
+            "resuming at {} env steps, {} updates",
+            c.progress.env_steps, c.agent.updates
+        );
+        Some(c)
+    } else {
+        None
+    };
+    let started = Instant::now();
+    let mut bar = Bar { bar: None };
+    let outcome = train(&config, resume_from, &mut bar)?;
+    if let Some(b) = bar.bar.take() {
+        b.finish();
+    }
+    println!(
+        "done: {} env steps, {} episodes, {:.0} s this session ({:.0} s total), {:.2} ms per update",
+        outcome.progress.env_steps,
+        outcome.progress.episodes,
+        started.elapsed().as_secs_f64(),
+        outcome.progress.wall_time_s,
+        1e3 * outcome.seconds_per_update
+    );
+    println!(
+        "best: success {:.1}%, time {:.2}x lower bound -> {}",
+        100.0 * outcome.progress.best_success,
+        outcome.progress.best_time_ratio,
+        outcome.best_checkpoint.display()
+    );
+    print!("{}", markdown_table("float (last)", &outcome.last_eval));
+    if let Some(e) = &outcome.evolution {
+        print_evolution(e);
+    }
+    Ok(())
+}
+
+fn run_evolve(args: EvolveArgs) -> Result<()> {
+    let EvolveArgs {
+        config,
+        checkpoint: source,
+    } = args;
+    let config = TrainConfig::load(&config)?;
+    let path = source.unwrap_or_else(|| config.output_dir.join("best.safetensors"));
+    let mut c =
+        checkpoint::load(&path).with_context(|| format!("evolving from {}", path.display()))?;
+    // The stage's clock starts where the run's log ends, as in `train`.
+    if let Ok(rows) = read_log(&config.output_dir.join("log.csv")) {
+        let end = rows.iter().map(|r| r.wall_s).fold(0.0, f64::max);
+        c.progress.wall_time_s = c.progress.wall_time_s.max(end);
+    }
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(config.training.threads)
+        .build()?;
+    let mut bar = Bar { bar: None };
+    let outcome = pool.install(|| evolve_checkpoint(&config, &c, &mut bar))?;
+    if let Some(b) = bar.bar.take() {
+        b.finish();
+    }
+    print_evolution(&outcome);
+    Ok(())
+}
+
+fn run_distill(args: DistillArgs) -> Result<()> {
+    let DistillArgs {
+        config,
+        actor,
+        out,
+        threads,
+    } = args;
+    let text = std::fs::read_to_string(&config)
+        .with_context(|| format!("reading {}", config.display()))?;
+    let config: DistillConfig =
+        toml::from_str(&text).with_context(|| format!("parsing {}", config.display()))?;
+    let start = checkpoint::load_actor(&actor)
+        .with_context(|| format!("distilling from {}", actor.display()))?;
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()?;
+    let t0 = std::time::Instant::now();
+    let outcome = pool.install(|| {
+            distill(&start, &config, |r| {
+                let check = r.check.map_or(String::new(), |c| {
+                    format!(
+                        ", check {:.3} (success {:.0}%, time {:.2}x)",
+                        c.fitness,
+                        100.0 * c.success_rate,
+                        c.time_ratio
+                    )
+                });
+                println!(
+                    "round {}: {} teach + {} keep samples, teach success {:.0}%, keep success {:.0}%, MSE teach {:.5} keep {:.5}{check} ({:.0} s)",
+                    r.round,
+                    r.teach_samples,
+                    r.keep_samples,
+                    100.0 * r.teach_success,
+                    100.0 * r.keep_success,
+                    r.teach_loss,
+                    r.keep_loss,
+                    t0.elapsed().as_secs_f64()
+                )
+            })
+        })?;
+    println!("kept round {}", outcome.best_round);
+    if let Some(dir) = out.parent() {
+        std::fs::create_dir_all(dir)?;
+    }
+    checkpoint::save_actor(&out, &outcome.actor)?;
+    println!("wrote {}", out.display());
+    Ok(())
+}
+
+fn run_export(args: ExportArgs) -> Result<()> {
+    let ExportArgs {
+        checkpoint: path,
+        out,
+        calibration_steps,
+        calibration_episodes,
+        qat_steps,
+        actor_out,
+    } = args;
+    let actor =
+        &checkpoint::load_actor(&path).with_context(|| format!("exporting {}", path.display()))?;
+    // Calibration and parity use different episodes (seeds) of the same scenarios.
+    let scenarios = calibration_scenarios();
+    let calibration = record_observations(
+        actor,
+        &scenarios,
+        calibration_episodes,
+        3_000_000_000,
+        calibration_steps,
+        2,
+    )?;
+    let max_speed = skyherd_sim::Scenario::paper_drive().limits.herder as f32;
+    let tuned = (qat_steps > 0).then(|| {
+        let config = skyherd_trainer::qat::QatConfig {
+            steps: qat_steps,
+            ..Default::default()
+        };
+        skyherd_trainer::qat::finetune(actor, &calibration, config)
+    });
+    let bytes = export(tuned.as_ref().unwrap_or(actor), max_speed, &calibration)?;
+    let held_out = record_observations(actor, &scenarios, 2, 3_100_000_000, 600, 3)?;
+    let on_calibration = parity(actor, &bytes, &calibration)?;
+    println!(
+        "parity on the calibration observations: RMS {:.4} per component, max {:.4}",
+        on_calibration.rms_component, on_calibration.max_component
+    );
+    let p = parity(actor, &bytes, &held_out)?;
+    if let Some(dir) = out.parent() {
+        std::fs::create_dir_all(dir)?;
+    }
+    std::fs::write(&out, &bytes)?;
+    if let Some(path) = actor_out {
+        if let Some(dir) = path.parent() {
+            std::fs::create_dir_all(dir)?;
+        }
+        checkpoint::save_actor(&path, actor)?;
+        println!("wrote the float actor to {}", path.display());
+    }
+    println!(
+        "wrote {} ({} bytes), calibrated on {} observations",
+        out.display(),
+        bytes.len(),
+        calibration.len()
+    );
+    println!(
+        "parity on {} held-out observations: RMS {:.4} per component, {:.4} per vector, max {:.4} (units of max speed)",
+        p.samples, p.rms_component, p.rms_vector, p.max_component
+    );
+    Ok(())
+}
+
+fn run_plot(args: PlotArgs) -> Result<()> {
+    let PlotArgs { log, out } = args;
+    skyherd_trainer::report::plot_curve(&read_log(&log)?, &out)?;
+    println!("wrote {}", out.display());
+    Ok(())
+}
+
+fn run_eval(args: EvalArgs) -> Result<()> {
+    let EvalArgs {
+        model,
+        episodes,
+        seed_base,
+        baselines,
+        actor: float_actor,
+        scenarios,
+        threads,
+    } = args;
+    let float_actor = float_actor
+        .map(|p| checkpoint::load_actor(&p))
+        .transpose()?;
+    let bytes = std::fs::read(&model)?;
+    let actor =
+        Actor::from_bytes(&bytes).map_err(|e| anyhow::anyhow!("{}: {e:?}", model.display()))?;
+    let scenarios: Vec<EvalScenario> = if scenarios.is_empty() {
+        [
+            "driving:16:4",
+            "driving:64:4",
+            "driving:256:0",
+            "collecting:16:4",
+            "collecting:64:4",
+        ]
+        .iter()
+        .map(|s| parse_scenario(s))
+        .collect::<Result<_>>()?
+    } else {
+        scenarios
+            .iter()
+            .map(|s| parse_scenario(s))
+            .collect::<Result<_>>()?
+    };
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .build()?;
+    println!("| scenario | method | episodes | success | time (s) | time / bound | path (m) |");
+    println!("|---|---|---|---|---|---|---|");
+    // Rows are labelled with the model file's name (`mtddpg-v3` for models/mtddpg-v3.skym).
+    let name = model
+        .file_stem()
+        .map_or_else(|| "model".to_owned(), |s| s.to_string_lossy().into_owned());
+    pool.install(|| -> Result<()> {
+        let rows = evaluate_flat(&scenarios, episodes, seed_base, || ActorPolicy::new(actor))?;
+        print!("{}", markdown_table(&format!("{name} (quantized)"), &rows));
+        if let Some(float) = &float_actor {
+            let rows = evaluate_flat(&scenarios, episodes, seed_base, || ActorPolicy::new(float))?;
+            print!("{}", markdown_table(&format!("{name} (float)"), &rows));
+        }
+        if baselines {
+            for method in Method::ALL {
+                let rows =
+                    evaluate_flat(&scenarios, episodes, seed_base, || RulePolicy::new(method))?;
+                print!("{}", markdown_table(method.as_str(), &rows));
+            }
+        }
+        Ok(())
+    })?;
     Ok(())
 }
