@@ -118,6 +118,20 @@ impl FromStr for Method {
     }
 }
 
+/// In configs a method is its name (`"lama"`, `"enclose"`, ...): [`Method::as_str`].
+impl serde::Serialize for Method {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_str(self.as_str())
+    }
+}
+
+impl<'de> serde::Deserialize<'de> for Method {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        let name = <String as serde::Deserialize>::deserialize(d)?;
+        name.parse().map_err(<D::Error as serde::de::Error>::custom)
+    }
+}
+
 impl PolicyFactory for Method {
     fn name(&self) -> String {
         self.as_str().to_owned()

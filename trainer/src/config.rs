@@ -23,7 +23,7 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 use skyherd_model::Task;
 use skyherd_sim::baseline::Method;
-use skyherd_sim::task::parse_task;
+use skyherd_sim::task::{parse_task, task_serde};
 use thiserror::Error;
 
 use crate::ddpg::{DdpgConfig, NetworkConfig};
@@ -59,7 +59,8 @@ pub enum ConfigError {
 #[serde(deny_unknown_fields)]
 pub struct EvolutionScenario {
     /// `driving` or `collecting`.
-    pub task: String,
+    #[serde(with = "task_serde")]
+    pub task: Task,
     /// Targets N.
     pub targets: usize,
     /// Herders M; 0 for the adaptive count.
@@ -73,9 +74,9 @@ pub struct EvolutionScenario {
 
 impl EvolutionScenario {
     /// A paper-layout scenario.
-    pub fn paper(task: &str, targets: usize, herders: usize, episodes: usize) -> Self {
+    pub fn paper(task: Task, targets: usize, herders: usize, episodes: usize) -> Self {
         EvolutionScenario {
-            task: task.to_owned(),
+            task,
             targets,
             herders,
             room: false,
@@ -84,7 +85,7 @@ impl EvolutionScenario {
     }
 
     /// A room-layout scenario.
-    pub fn room(task: &str, targets: usize, herders: usize, episodes: usize) -> Self {
+    pub fn room(task: Task, targets: usize, herders: usize, episodes: usize) -> Self {
         EvolutionScenario {
             room: true,
             ..EvolutionScenario::paper(task, targets, herders, episodes)
@@ -132,9 +133,7 @@ pub struct EvolutionConfig {
 impl EvolutionConfig {
     /// The configured scenarios of `task`.
     pub fn scenarios_of(&self, task: Task) -> impl Iterator<Item = &EvolutionScenario> {
-        self.scenarios
-            .iter()
-            .filter(move |s| parse_task(&s.task) == Some(task))
+        self.scenarios.iter().filter(move |s| s.task == task)
     }
 }
 
@@ -154,19 +153,19 @@ impl Default for EvolutionConfig {
             check_rounds: 4,
             check_seed_base: 3_000_000_000,
             scenarios: vec![
-                EvolutionScenario::room("driving", 4, 2, 10),
-                EvolutionScenario::paper("driving", 4, 4, 2),
-                EvolutionScenario::paper("driving", 16, 4, 2),
-                EvolutionScenario::paper("driving", 64, 4, 1),
-                EvolutionScenario::paper("driving", 8, 1, 2),
-                EvolutionScenario::paper("driving", 16, 2, 2),
-                EvolutionScenario::paper("driving", 128, 4, 1),
-                EvolutionScenario::paper("collecting", 4, 2, 2),
-                EvolutionScenario::paper("collecting", 16, 4, 2),
-                EvolutionScenario::paper("collecting", 64, 4, 1),
-                EvolutionScenario::paper("collecting", 8, 1, 2),
-                EvolutionScenario::paper("collecting", 32, 2, 1),
-                EvolutionScenario::paper("collecting", 16, 8, 1),
+                EvolutionScenario::room(Task::Driving, 4, 2, 10),
+                EvolutionScenario::paper(Task::Driving, 4, 4, 2),
+                EvolutionScenario::paper(Task::Driving, 16, 4, 2),
+                EvolutionScenario::paper(Task::Driving, 64, 4, 1),
+                EvolutionScenario::paper(Task::Driving, 8, 1, 2),
+                EvolutionScenario::paper(Task::Driving, 16, 2, 2),
+                EvolutionScenario::paper(Task::Driving, 128, 4, 1),
+                EvolutionScenario::paper(Task::Collecting, 4, 2, 2),
+                EvolutionScenario::paper(Task::Collecting, 16, 4, 2),
+                EvolutionScenario::paper(Task::Collecting, 64, 4, 1),
+                EvolutionScenario::paper(Task::Collecting, 8, 1, 2),
+                EvolutionScenario::paper(Task::Collecting, 32, 2, 1),
+                EvolutionScenario::paper(Task::Collecting, 16, 8, 1),
             ],
         }
     }
@@ -221,9 +220,9 @@ pub struct WarmStartConfig {
     /// Whether to warm start at all.
     pub enabled: bool,
     /// The baseline imitated in the driving task (a `skyherd_sim::baseline::Method` name).
-    pub driving_baseline: String,
+    pub driving_baseline: Method,
     /// The baseline imitated in the collecting task.
-    pub collecting_baseline: String,
+    pub collecting_baseline: Method,
     /// Demonstration episodes per task (scenarios drawn from every curriculum stage).
     pub episodes_per_task: usize,
     /// Imitation minibatch updates (one batch per task each).
@@ -246,7 +245,8 @@ pub struct WarmStartConfig {
 #[serde(deny_unknown_fields)]
 pub struct TeacherRule {
     /// `driving` or `collecting`.
-    pub task: String,
+    #[serde(with = "task_serde")]
+    pub task: Task,
     /// Smallest herder count M (after resolving the adaptive count) the rule applies to.
     #[serde(default)]
     pub herders_at_least: usize,
@@ -254,7 +254,7 @@ pub struct TeacherRule {
     #[serde(default = "unbounded")]
     pub targets_at_most: usize,
     /// The baseline imitated (a `skyherd_sim::baseline::Method` name).
-    pub baseline: String,
+    pub baseline: Method,
 }
 
 fn unbounded() -> usize {
@@ -263,19 +263,15 @@ fn unbounded() -> usize {
 
 impl WarmStartConfig {
     /// The baseline imitated in `task` with `targets` targets and `herders` herders.
-    /// (Names were checked by [`TrainConfig::validate`]; an unknown one falls back to Lama.)
     pub fn teacher(&self, task: Task, targets: usize, herders: usize) -> Method {
         let rule = self.teachers.iter().find(|r| {
-            parse_task(&r.task) == Some(task)
-                && herders >= r.herders_at_least
-                && targets <= r.targets_at_most
+            r.task == task && herders >= r.herders_at_least && targets <= r.targets_at_most
         });
-        let name = match (rule, task) {
-            (Some(r), _) => &r.baseline,
-            (None, Task::Driving) => &self.driving_baseline,
-            (None, Task::Collecting) => &self.collecting_baseline,
-        };
-        name.parse().unwrap_or(Method::Lama)
+        match (rule, task) {
+            (Some(r), _) => r.baseline,
+            (None, Task::Driving) => self.driving_baseline,
+            (None, Task::Collecting) => self.collecting_baseline,
+        }
     }
 }
 
@@ -283,8 +279,8 @@ impl Default for WarmStartConfig {
     fn default() -> Self {
         WarmStartConfig {
             enabled: true,
-            driving_baseline: "lama".into(),
-            collecting_baseline: "lama".into(),
+            driving_baseline: Method::Lama,
+            collecting_baseline: Method::Lama,
             episodes_per_task: 48,
             imitation_updates: 20_000,
             imitation_learning_rate: 1e-3,
@@ -535,36 +531,7 @@ impl TrainConfig {
                 return bad("eval.scenarios", "task must be `driving` or `collecting`");
             }
         }
-        let teachers = self.warm_start.teachers.iter().map(|r| &r.baseline);
-        for name in [
-            &self.warm_start.driving_baseline,
-            &self.warm_start.collecting_baseline,
-        ]
-        .into_iter()
-        .chain(teachers)
-        {
-            if name.parse::<Method>().is_err() {
-                return bad("warm_start", "unknown baseline method name");
-            }
-        }
-        if self
-            .warm_start
-            .teachers
-            .iter()
-            .any(|r| parse_task(&r.task).is_none())
-        {
-            return bad(
-                "warm_start.teachers",
-                "task must be `driving` or `collecting`",
-            );
-        }
         let ev = &self.evolution;
-        if ev.scenarios.iter().any(|s| parse_task(&s.task).is_none()) {
-            return bad(
-                "evolution.scenarios",
-                "task must be `driving` or `collecting`",
-            );
-        }
         if ev
             .scenarios
             .iter()
@@ -631,14 +598,14 @@ mod tests {
 
     #[test]
     fn teachers_are_picked_by_task_and_flock() {
-        let rule = |task: &str, herders_at_least, targets_at_most| TeacherRule {
-            task: task.into(),
+        let rule = |task, herders_at_least, targets_at_most| TeacherRule {
+            task,
             herders_at_least,
             targets_at_most,
-            baseline: "strombom".into(),
+            baseline: Method::Strombom,
         };
         let w = WarmStartConfig {
-            teachers: vec![rule("driving", 2, 64), rule("collecting", 8, 64)],
+            teachers: vec![rule(Task::Driving, 2, 64), rule(Task::Collecting, 8, 64)],
             ..WarmStartConfig::default()
         };
         assert_eq!(
@@ -675,7 +642,11 @@ mod tests {
         assert!(err.to_string().contains("ddpg.gamma"), "{err}");
         let err =
             TrainConfig::from_toml_str("[warm_start]\ndriving_baseline = \"nope\"").unwrap_err();
-        assert!(err.to_string().contains("warm_start"), "{err}");
+        let text = err.to_string();
+        assert!(
+            text.contains("driving_baseline") && text.contains("`nope`"),
+            "{err}"
+        );
         let err = TrainConfig::from_toml_str("[evolution]\nsigma = 0.0").unwrap_err();
         assert!(err.to_string().contains("evolution.sigma"), "{err}");
         let err = TrainConfig::from_toml_str(

@@ -15,7 +15,7 @@
 use rand::Rng;
 use serde::{Deserialize, Serialize};
 
-use crate::network::{MultiTaskMlp, Tape};
+use crate::network::{MlpShape, MultiTaskMlp, Tape};
 use crate::nn::{Activation, Adam, AdamConfig};
 use crate::replay::Batch;
 
@@ -130,21 +130,25 @@ impl Agent {
         rng: &mut R,
     ) -> Agent {
         let actor = MultiTaskMlp::new(
-            tasks,
-            obs_dim,
-            network.hidden,
-            network.shared_layers,
-            ACTION_DIM,
-            Activation::Tanh,
+            MlpShape {
+                tasks,
+                inputs: obs_dim,
+                hidden: network.hidden,
+                shared_layers: network.shared_layers,
+                outputs: ACTION_DIM,
+                output_activation: Activation::Tanh,
+            },
             rng,
         );
         let critic = MultiTaskMlp::new(
-            tasks,
-            obs_dim + ACTION_DIM,
-            network.hidden,
-            network.shared_layers,
-            1,
-            Activation::Identity,
+            MlpShape {
+                tasks,
+                inputs: obs_dim + ACTION_DIM,
+                hidden: network.hidden,
+                shared_layers: network.shared_layers,
+                outputs: 1,
+                output_activation: Activation::Identity,
+            },
             rng,
         );
         Agent::from_networks(actor, critic, config)

@@ -15,19 +15,30 @@
 //!
 //! ```
 //! use rand::SeedableRng;
+//! use skyherd_model::Task;
 //! use skyherd_trainer::config::EvolutionScenario;
 //! use skyherd_trainer::distill::{DistillConfig, TeachScenario, distill};
-//! use skyherd_trainer::network::MultiTaskMlp;
+//! use skyherd_trainer::network::{MlpShape, MultiTaskMlp};
 //! use skyherd_trainer::nn::Activation;
 //!
 //! let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
-//! let actor = MultiTaskMlp::new(2, 46, 8, 1, 3, Activation::Tanh, &mut rng);
+//! let actor = MultiTaskMlp::new(
+//!     MlpShape {
+//!         tasks: 2,
+//!         inputs: 46,
+//!         hidden: 8,
+//!         shared_layers: 1,
+//!         outputs: 3,
+//!         output_activation: Activation::Tanh,
+//!     },
+//!     &mut rng,
+//! );
 //! let config = DistillConfig {
 //!     rounds: 2,
 //!     updates_per_round: 20,
 //!     step_limit: 40,
-//!     teach: vec![TeachScenario::paper("driving", 8, 2, 1)],
-//!     keep: vec![EvolutionScenario::paper("collecting", 4, 1, 1)],
+//!     teach: vec![TeachScenario::paper(Task::Driving, 8, 2, 1)],
+//!     keep: vec![EvolutionScenario::paper(Task::Collecting, 4, 1, 1)],
 //!     ..DistillConfig::default()
 //! };
 //! let out = distill(&actor, &config, |_| {}).unwrap();
@@ -45,6 +56,7 @@ use skyherd_onboard::safety::Limits;
 use skyherd_sim::baseline::{Method, RulePolicy};
 use skyherd_sim::obs::EncoderBuffers;
 use skyherd_sim::policy::Policy;
+use skyherd_sim::task::task_serde;
 use skyherd_sim::{Env, EnvError, Scenario};
 
 use crate::config::EvolutionScenario;
@@ -65,7 +77,7 @@ pub struct DistillConfig {
     /// Seed of the minibatch draws.
     pub seed: u64,
     /// The teacher: a `skyherd_sim::baseline::Method` name.
-    pub teacher: String,
+    pub teacher: Method,
     /// DAgger rounds; round 0 rolls out the teacher, later rounds the student.
     pub rounds: usize,
     /// Adam updates after each round's roll-outs.
@@ -107,7 +119,7 @@ impl Default for DistillConfig {
     fn default() -> Self {
         DistillConfig {
             seed: 1,
-            teacher: "enclose".into(),
+            teacher: Method::Enclose,
             rounds: 4,
             updates_per_round: 5_000,
             learning_rate: 3e-4,
@@ -131,7 +143,8 @@ impl Default for DistillConfig {
 #[serde(deny_unknown_fields)]
 pub struct TeachScenario {
     /// `driving` or `collecting`.
-    pub task: String,
+    #[serde(with = "task_serde")]
+    pub task: Task,
     /// Targets N.
     pub targets: usize,
     /// Herders M; 0 for the adaptive count.
@@ -143,14 +156,14 @@ pub struct TeachScenario {
     pub episodes: usize,
     /// This scenario's teacher (a baseline name) instead of the config's `teacher`.
     #[serde(default)]
-    pub teacher: Option<String>,
+    pub teacher: Option<Method>,
 }
 
 impl TeachScenario {
     /// A paper-layout teach scenario with the config's teacher.
-    pub fn paper(task: &str, targets: usize, herders: usize, episodes: usize) -> Self {
+    pub fn paper(task: Task, targets: usize, herders: usize, episodes: usize) -> Self {
         TeachScenario {
-            task: task.to_owned(),
+            task,
             targets,
             herders,
             room: false,
@@ -161,7 +174,7 @@ impl TeachScenario {
 
     fn scenario(&self) -> EvolutionScenario {
         EvolutionScenario {
-            task: self.task.clone(),
+            task: self.task,
             targets: self.targets,
             herders: self.herders,
             room: self.room,
@@ -173,12 +186,6 @@ impl TeachScenario {
 /// Why distillation could not run.
 #[derive(Debug, thiserror::Error)]
 pub enum DistillError {
-    /// The teacher is not a baseline name.
-    #[error("distill: {0}")]
-    Teacher(String),
-    /// A scenario's task is neither `driving` nor `collecting`.
-    #[error("distill: scenario task `{0}` is neither `driving` nor `collecting`")]
-    Task(String),
     /// The actor's shape does not fit the encoder or the action.
     #[error(
         "distill: the actor maps {inputs} inputs to {outputs} outputs; encoder v{encoder_version} gives {features} and actions have {ACTION_DIM}"
@@ -385,8 +392,7 @@ fn jobs(
     list.iter()
         .enumerate()
         .map(|(k, s)| {
-            let scenario =
-                scenario_of(s, step_limit).ok_or_else(|| DistillError::Task(s.task.clone()))?;
+            let scenario = scenario_of(s, step_limit);
             Ok(Job {
                 scenario,
                 episodes: s.episodes,
@@ -403,10 +409,7 @@ pub fn distill(
     config: &DistillConfig,
     mut on_round: impl FnMut(&RoundReport),
 ) -> Result<Distilled, DistillError> {
-    let parse = |name: &str| -> Result<Method, DistillError> {
-        name.parse().map_err(DistillError::Teacher)
-    };
-    let default_teacher = parse(&config.teacher)?;
+    let default_teacher = config.teacher;
     let width = feature_count(config.encoder_version)
         .ok_or(DistillError::EncoderVersion(config.encoder_version))?;
     // An actor made for an older encoder, whose features are a prefix of this one's, starts
@@ -424,10 +427,7 @@ pub fn distill(
     let teach_list: Vec<EvolutionScenario> = config.teach.iter().map(|t| t.scenario()).collect();
     let teach = jobs(
         &teach_list,
-        |k| match &config.teach[k].teacher {
-            Some(name) => parse(name).map(Some),
-            None => Ok(Some(default_teacher)),
-        },
+        |k| Ok(Some(config.teach[k].teacher.unwrap_or(default_teacher))),
         config.step_limit,
     )?;
     let keep = jobs(&config.keep, |_| Ok(None), config.step_limit)?;
@@ -604,11 +604,22 @@ fn train_round(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::network::MlpShape;
     use crate::nn::Activation;
 
     fn tiny() -> MultiTaskMlp {
         let mut rng = ChaCha8Rng::seed_from_u64(3);
-        MultiTaskMlp::new(2, FEATURES, 32, 1, 3, Activation::Tanh, &mut rng)
+        MultiTaskMlp::new(
+            MlpShape {
+                tasks: 2,
+                inputs: FEATURES,
+                hidden: 32,
+                shared_layers: 1,
+                outputs: 3,
+                output_activation: Activation::Tanh,
+            },
+            &mut rng,
+        )
     }
 
     fn tiny_config() -> DistillConfig {
@@ -618,8 +629,8 @@ mod tests {
             learning_rate: 3e-3,
             step_limit: 100,
             stride: 2,
-            teach: vec![TeachScenario::paper("driving", 16, 4, 8)],
-            keep: vec![EvolutionScenario::paper("collecting", 8, 2, 2)],
+            teach: vec![TeachScenario::paper(Task::Driving, 16, 4, 8)],
+            keep: vec![EvolutionScenario::paper(Task::Collecting, 8, 2, 2)],
             ..DistillConfig::default()
         }
     }
@@ -647,7 +658,7 @@ mod tests {
         let out = distill(&start, &config, |_| {}).unwrap();
         // Fresh observations of the teacher flying the teach scenario, labelled by it.
         let teach = jobs(
-            &[EvolutionScenario::paper("driving", 16, 4, 4)],
+            &[EvolutionScenario::paper(Task::Driving, 16, 4, 4)],
             |_| Ok(Some(Method::Enclose)),
             100,
         )
@@ -684,7 +695,7 @@ mod tests {
         let config = DistillConfig {
             rounds: 3,
             updates_per_round: 50,
-            check: vec![EvolutionScenario::paper("driving", 4, 2, 2)],
+            check: vec![EvolutionScenario::paper(Task::Driving, 4, 2, 2)],
             ..tiny_config()
         };
         let out = distill(&start, &config, |_| {}).unwrap();
@@ -716,35 +727,40 @@ mod tests {
     }
 
     #[test]
-    fn bad_teacher_and_task_are_named() {
-        let start = tiny();
-        let bad = DistillConfig {
-            teacher: "nobody".into(),
-            ..tiny_config()
-        };
-        let e = distill(&start, &bad, |_| {}).unwrap_err().to_string();
-        assert!(e.contains("nobody"), "{e}");
-        let mut own = TeachScenario::paper("driving", 4, 1, 1);
-        own.teacher = Some("somebody".into());
-        let bad = DistillConfig {
-            teach: vec![own],
-            ..tiny_config()
-        };
-        let e = distill(&start, &bad, |_| {}).unwrap_err().to_string();
+    fn bad_teacher_and_task_are_named_when_the_config_is_read() {
+        let read = |toml_text: &str| toml::from_str::<DistillConfig>(toml_text).map(|_| ());
+        let e = read("teacher = \"nobody\"").unwrap_err().to_string();
+        assert!(e.contains("nobody") && e.contains("enclose"), "{e}");
+        let scenario = "[[teach]]\ntargets = 4\nherders = 1\nepisodes = 1\n";
+        let e = read(&format!(
+            "{scenario}task = \"driving\"\nteacher = \"somebody\""
+        ))
+        .unwrap_err()
+        .to_string();
         assert!(e.contains("somebody"), "{e}");
-        let bad = DistillConfig {
-            teach: vec![TeachScenario::paper("grazing", 4, 1, 1)],
-            ..tiny_config()
-        };
-        let e = distill(&start, &bad, |_| {}).unwrap_err().to_string();
-        assert!(e.contains("grazing"), "{e}");
+        let e = read(&format!("{scenario}task = \"grazing\""))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("grazing") && e.contains("collecting"), "{e}");
+        let good = read(&format!("{scenario}task = \"driving\"\nteacher = \"lama\""));
+        assert!(good.is_ok(), "{good:?}");
     }
 
     #[test]
     fn an_older_encoders_actor_is_widened_and_a_wider_one_refused() {
         use skyherd_onboard::obs::V3_FEATURES;
         let mut rng = ChaCha8Rng::seed_from_u64(3);
-        let v3 = MultiTaskMlp::new(2, V3_FEATURES, 32, 1, 3, Activation::Tanh, &mut rng);
+        let v3 = MultiTaskMlp::new(
+            MlpShape {
+                tasks: 2,
+                inputs: V3_FEATURES,
+                hidden: 32,
+                shared_layers: 1,
+                outputs: 3,
+                output_activation: Activation::Tanh,
+            },
+            &mut rng,
+        );
         let config = DistillConfig {
             rounds: 1,
             updates_per_round: 20,

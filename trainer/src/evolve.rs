@@ -21,18 +21,28 @@
 //! use skyherd_model::Task;
 //! use skyherd_trainer::config::{EvolutionConfig, EvolutionScenario};
 //! use skyherd_trainer::evolve::{evolve_task, head_parameters};
-//! use skyherd_trainer::network::MultiTaskMlp;
+//! use skyherd_trainer::network::{MlpShape, MultiTaskMlp};
 //! use skyherd_trainer::nn::Activation;
 //!
 //! let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
-//! let actor = MultiTaskMlp::new(2, 46, 8, 1, 3, Activation::Tanh, &mut rng);
+//! let actor = MultiTaskMlp::new(
+//!     MlpShape {
+//!         tasks: 2,
+//!         inputs: 46,
+//!         hidden: 8,
+//!         shared_layers: 1,
+//!         outputs: 3,
+//!         output_activation: Activation::Tanh,
+//!     },
+//!     &mut rng,
+//! );
 //! let config = EvolutionConfig {
 //!     generations: 1,
 //!     population: 2,
 //!     step_limit: 30,
 //!     check_every: 1,
 //!     check_rounds: 1,
-//!     scenarios: vec![EvolutionScenario::paper("driving", 2, 1, 1)],
+//!     scenarios: vec![EvolutionScenario::paper(Task::Driving, 2, 1, 1)],
 //!     ..EvolutionConfig::default()
 //! };
 //! let out = evolve_task(&actor, Task::Driving, &config, 7, |_| {}).unwrap();
@@ -51,7 +61,6 @@ use rand_distr::StandardNormal;
 use rayon::prelude::*;
 use skyherd_model::Task;
 use skyherd_sim::env::run_episode;
-use skyherd_sim::task::parse_task;
 use skyherd_sim::world::World;
 use skyherd_sim::{Env, EnvError, Scenario};
 
@@ -128,22 +137,15 @@ pub fn set_head_parameters(actor: &mut MultiTaskMlp, task: usize, theta: &[f32])
 }
 
 /// The simulator scenario of one configured evolution scenario (test-time noise on).
-pub fn scenario_of(s: &EvolutionScenario, step_limit: u64) -> Option<Scenario> {
-    let task = parse_task(&s.task)?;
+pub fn scenario_of(s: &EvolutionScenario, step_limit: u64) -> Scenario {
     let draw = Draw {
-        task,
+        task: s.task,
         targets: s.targets,
         herders: s.herders,
         room: s.room,
     };
     // The score reads only success and time, so the reward settings do not matter here.
-    Some(training_scenario(
-        draw,
-        step_limit,
-        true,
-        &RewardConfig::default(),
-        0.99,
-    ))
+    training_scenario(draw, step_limit, true, &RewardConfig::default(), 0.99)
 }
 
 /// How an episode is scored: `time / lower bound` when it succeeds, else
@@ -285,7 +287,7 @@ pub fn evolve_task(
     let t = task.index();
     let train: Vec<(Scenario, usize)> = config
         .scenarios_of(task)
-        .filter_map(|s| Some((scenario_of(s, config.step_limit)?, s.episodes)))
+        .map(|s| (scenario_of(s, config.step_limit), s.episodes))
         .collect();
     let check: Vec<(Scenario, usize)> = train
         .iter()
@@ -465,11 +467,22 @@ fn adam_ascent(theta: &mut [f32], grad: &[f32], m: &mut [f32], v: &mut [f32], t:
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::network::MlpShape;
     use crate::nn::Activation;
 
     fn tiny_actor() -> MultiTaskMlp {
         let mut rng = ChaCha8Rng::seed_from_u64(3);
-        MultiTaskMlp::new(2, 46, 8, 1, 3, Activation::Tanh, &mut rng)
+        MultiTaskMlp::new(
+            MlpShape {
+                tasks: 2,
+                inputs: 46,
+                hidden: 8,
+                shared_layers: 1,
+                outputs: 3,
+                output_activation: Activation::Tanh,
+            },
+            &mut rng,
+        )
     }
 
     #[test]
@@ -533,7 +546,7 @@ mod tests {
             step_limit: 40,
             check_every: 1,
             check_rounds: 1,
-            scenarios: vec![EvolutionScenario::paper("driving", 2, 1, 1)],
+            scenarios: vec![EvolutionScenario::paper(Task::Driving, 2, 1, 1)],
             ..EvolutionConfig::default()
         }
     }
@@ -564,7 +577,7 @@ mod tests {
     fn partial_credit_ranks_failures_by_how_much_of_the_flock_got_in() {
         // A random actor in 10 steps fails every episode of 16 targets.
         let actor = tiny_actor();
-        let scenario = scenario_of(&EvolutionScenario::paper("driving", 16, 2, 1), 10).unwrap();
+        let scenario = scenario_of(&EvolutionScenario::paper(Task::Driving, 16, 2, 1), 10);
         let episodes = [(scenario, 3)];
         let flat = Scoring {
             failure_ratio: 12.0,

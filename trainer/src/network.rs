@@ -6,11 +6,21 @@
 //! * Critic: `FEATURES + 3 -> H -> ... -> 1`, no output activation: `Q(s, a)`.
 //!
 //! ```
-//! use skyherd_trainer::network::MultiTaskMlp;
+//! use skyherd_trainer::network::{MlpShape, MultiTaskMlp};
 //! use skyherd_trainer::nn::Activation;
 //! use rand::SeedableRng;
 //! let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
-//! let actor = MultiTaskMlp::new(2, 46, 64, 1, 3, Activation::Tanh, &mut rng);
+//! let actor = MultiTaskMlp::new(
+//!     MlpShape {
+//!         tasks: 2,
+//!         inputs: 46,
+//!         hidden: 64,
+//!         shared_layers: 1,
+//!         outputs: 3,
+//!         output_activation: Activation::Tanh,
+//!     },
+//!     &mut rng,
+//! );
 //! let action = actor.predict(0, &[0.1; 46]);
 //! assert_eq!(action.len(), 3);
 //! assert!(action.iter().all(|a| a.abs() <= 1.0));
@@ -24,6 +34,23 @@ use crate::nn::{Activation, Dense};
 /// Final-layer init bound: small outputs at the start, as in cleanrl's DDPG (and the original
 /// paper), so the untrained actor neither saturates tanh nor the critic explodes.
 pub const OUTPUT_INIT_BOUND: f32 = 3e-3;
+
+/// The shape of a [`MultiTaskMlp`]: how many tasks, the layer widths and the output squashing.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct MlpShape {
+    /// Tasks (each with its own input and output layer): 2 for driving and collecting.
+    pub tasks: usize,
+    /// Input width (the encoder's feature count for an actor).
+    pub inputs: usize,
+    /// Width of every hidden layer.
+    pub hidden: usize,
+    /// Hidden layers shared between the tasks.
+    pub shared_layers: usize,
+    /// Output width (3 for an actor's velocity, 1 for a critic's value).
+    pub outputs: usize,
+    /// What the output layer applies.
+    pub output_activation: Activation,
+}
 
 /// A multi-task MLP: per-task input layer -> shared hidden layers -> per-task output layer.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -59,15 +86,15 @@ impl Tape {
 
 impl MultiTaskMlp {
     /// A freshly initialised network for `tasks` tasks.
-    pub fn new<R: Rng>(
-        tasks: usize,
-        inputs: usize,
-        hidden: usize,
-        shared_layers: usize,
-        outputs: usize,
-        output_activation: Activation,
-        rng: &mut R,
-    ) -> MultiTaskMlp {
+    pub fn new<R: Rng>(shape: MlpShape, rng: &mut R) -> MultiTaskMlp {
+        let MlpShape {
+            tasks,
+            inputs,
+            hidden,
+            shared_layers,
+            outputs,
+            output_activation,
+        } = shape;
         MultiTaskMlp {
             task_inputs: (0..tasks)
                 .map(|_| Dense::new_uniform(inputs, hidden, rng))
@@ -286,7 +313,17 @@ mod tests {
     #[test]
     fn widening_adds_inputs_that_change_nothing_until_trained() {
         let mut rng = ChaCha8Rng::seed_from_u64(4);
-        let net = MultiTaskMlp::new(2, 5, 8, 1, 3, Activation::Tanh, &mut rng);
+        let net = MultiTaskMlp::new(
+            MlpShape {
+                tasks: 2,
+                inputs: 5,
+                hidden: 8,
+                shared_layers: 1,
+                outputs: 3,
+                output_activation: Activation::Tanh,
+            },
+            &mut rng,
+        );
         let wide = net.widen_inputs(7).expect("wider");
         assert_eq!((wide.inputs(), wide.hidden(), wide.outputs()), (7, 8, 3));
         let x = [0.3, -0.2, 0.9, 0.1, -0.7];
@@ -376,7 +413,17 @@ mod tests {
     /// its linear region and the check is not trivially satisfied.
     fn test_net(inputs: usize, outputs: usize, act: Activation, seed: u64) -> MultiTaskMlp {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
-        let mut net = MultiTaskMlp::new(2, inputs, 6, 2, outputs, act, &mut rng);
+        let mut net = MultiTaskMlp::new(
+            MlpShape {
+                tasks: 2,
+                inputs,
+                hidden: 6,
+                shared_layers: 2,
+                outputs,
+                output_activation: act,
+            },
+            &mut rng,
+        );
         for l in net.task_outputs.iter_mut() {
             *l = Dense::new_uniform_bound(l.inputs, l.outputs, 0.8, &mut rng);
         }

@@ -396,6 +396,7 @@ fn draw_in(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::network::MlpShape;
     use rand::SeedableRng;
 
     #[test]
@@ -472,7 +473,17 @@ mod tests {
         let mut config = TrainConfig::default();
         config.training.episode_step_limit = 5;
         let mut rng = ChaCha8Rng::seed_from_u64(1);
-        let actor = MultiTaskMlp::new(2, FEATURES, 16, 1, 3, crate::nn::Activation::Tanh, &mut rng);
+        let actor = MultiTaskMlp::new(
+            MlpShape {
+                tasks: 2,
+                inputs: FEATURES,
+                hidden: 16,
+                shared_layers: 1,
+                outputs: 3,
+                output_activation: crate::nn::Activation::Tanh,
+            },
+            &mut rng,
+        );
         let fixed = |_: &mut ChaCha8Rng, task| Draw::paper(task, 4, 3);
         let mut draw = fixed;
         let mut rollouts =
@@ -502,8 +513,8 @@ mod tests {
         rollouts
             .step(
                 &Controller::Baseline(&WarmStartConfig {
-                    driving_baseline: "farthest".into(),
-                    collecting_baseline: "farthest".into(),
+                    driving_baseline: Method::FarthestTargets,
+                    collecting_baseline: Method::FarthestTargets,
                     ..WarmStartConfig::default()
                 }),
                 &mut replay,

@@ -9,10 +9,10 @@
 //!
 //! # Mission flow
 //! On a start command the core streams zero-velocity setpoints, asks the autopilot to arm, and
-//! once the stream has run for [`CoreConfig::stream_before_mode_ms`] asks for the autopilot's
+//! once the stream has run for [`CoreConfig::stream_before_mode`] asks for the autopilot's
 //! external-control mode (PX4 OFFBOARD, ArduPilot GUIDED). When the autopilot reports armed and
 //! in that mode, the core flies: world snapshot (own position replaced by the autopilot's, which
-//! is fresher, its height counted from the altitude band's floor) -> [`skyherd_onboard::obs::encode`] -> [`Policy::act`] ->
+//! is fresher, its height counted from the altitude band's floor) -> [`skyherd_onboard::obs::encode`] -> [`OnboardPolicy::act`] ->
 //! [`skyherd_onboard::obs::LocalFrame::action_to_world`] -> [`skyherd_onboard::safety::check`] ->
 //! [`skyherd_onboard::frame::sim_to_ned`].
 //! It holds (zero-velocity setpoints) when the uplink is stale, when the autopilot link is lost,
@@ -25,7 +25,7 @@
 //! counted and dropped.
 //!
 //! ```
-//! use skyherd_daemon::control::{CoreConfig, DaemonCore, Millis, Policy, Status};
+//! use skyherd_daemon::control::{CoreConfig, DaemonCore, Millis, OnboardPolicy, Status};
 //! use skyherd_link::Flavour;
 //! use skyherd_onboard::obs::FEATURES;
 //! use skyherd_onboard::wire::{MissionAction, MissionCommand, Uplink};
@@ -33,7 +33,7 @@
 //!
 //! /// A policy for the example: always "towards the goal".
 //! struct Forward;
-//! impl Policy for Forward {
+//! impl OnboardPolicy for Forward {
 //!     fn act(&mut self, _task: Task, _features: &[f32; FEATURES]) -> [f32; 3] {
 //!         [1.0, 0.0, 0.0]
 //!     }
@@ -55,6 +55,7 @@
 //! ```
 
 use std::fmt;
+use std::time::Duration;
 
 use log::{info, warn};
 use skyherd_link::Flavour;
@@ -74,9 +75,17 @@ use skyherd_onboard::wire::{
 pub struct Millis(pub u64);
 
 impl Millis {
-    /// Milliseconds from `earlier` to `self`, zero if `earlier` is later.
-    pub fn since(self, earlier: Millis) -> u64 {
-        self.0.saturating_sub(earlier.0)
+    /// The time from `earlier` to `self`, zero if `earlier` is later.
+    pub fn since(self, earlier: Millis) -> Duration {
+        Duration::from_millis(self.0.saturating_sub(earlier.0))
+    }
+
+    /// `span` later (whole milliseconds, saturating).
+    pub fn after(self, span: Duration) -> Millis {
+        Millis(
+            self.0
+                .saturating_add(span.as_millis().try_into().unwrap_or(u64::MAX)),
+        )
     }
 }
 
@@ -92,14 +101,14 @@ pub struct CoreConfig {
     /// Speed limit of this drone, m/s; the snapshot's limit applies too (the smaller wins).
     pub max_speed: f32,
     /// A world snapshot older than this is stale: hold.
-    pub uplink_timeout_ms: u64,
+    pub uplink_timeout: Duration,
     /// Nothing heard from the autopilot for this long: link lost, hold.
-    pub autopilot_timeout_ms: u64,
+    pub autopilot_timeout: Duration,
     /// How long to stream setpoints before asking for the control mode (PX4 wants > 2 Hz for
     /// 1 s).
-    pub stream_before_mode_ms: u64,
+    pub stream_before_mode: Duration,
     /// Arm and mode requests are repeated this often until the autopilot reports them done.
-    pub command_retry_ms: u64,
+    pub command_retry: Duration,
 }
 
 impl CoreConfig {
@@ -111,10 +120,10 @@ impl CoreConfig {
             herder_index,
             flavour,
             max_speed: 5.0,
-            uplink_timeout_ms: 1000,
-            autopilot_timeout_ms: 1500,
-            stream_before_mode_ms: 1200,
-            command_retry_ms: 1000,
+            uplink_timeout: Duration::from_millis(1000),
+            autopilot_timeout: Duration::from_millis(1500),
+            stream_before_mode: Duration::from_millis(1200),
+            command_retry: Duration::from_millis(1000),
         }
     }
 }
@@ -122,13 +131,13 @@ impl CoreConfig {
 /// The learned actor as the core sees it: features in, normalised action out.
 ///
 /// The daemon flies [`Actor`] (quantized, from a model file); tests may use anything.
-pub trait Policy {
+pub trait OnboardPolicy {
     /// Normalised action, each component in [-1, 1], in the encoder's
     /// [`LocalFrame`](skyherd_onboard::obs::LocalFrame).
     fn act(&mut self, task: Task, features: &[f32; FEATURES]) -> [f32; 3];
 }
 
-impl Policy for Actor<'_> {
+impl OnboardPolicy for Actor<'_> {
     fn act(&mut self, task: Task, features: &[f32; FEATURES]) -> [f32; 3] {
         self.infer(task, features)
     }
@@ -174,13 +183,13 @@ pub enum Preparing {
 /// Why the core sends zero-velocity setpoints instead of the actor's.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum HoldReason {
-    /// Nothing heard from the autopilot within [`CoreConfig::autopilot_timeout_ms`].
+    /// Nothing heard from the autopilot within [`CoreConfig::autopilot_timeout`].
     AutopilotLost,
     /// No LOCAL_POSITION_NED yet, or none within the autopilot timeout.
     NoPosition,
     /// No world snapshot since the mission started.
     NoSnapshot,
-    /// The newest snapshot is older than [`CoreConfig::uplink_timeout_ms`].
+    /// The newest snapshot is older than [`CoreConfig::uplink_timeout`].
     UplinkStale {
         /// Age of the newest snapshot, ms.
         age_ms: u64,
@@ -260,7 +269,7 @@ impl fmt::Display for Status {
 
 /// What to send after one control tick.
 #[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Decision {
+pub struct ControlOutput {
     /// The setpoint to stream, if any (none while idle).
     pub setpoint: Option<Setpoint>,
     /// A command for the autopilot, if one is due.
@@ -296,7 +305,7 @@ pub struct CoreCounters {
 
 /// How long after an accepted arm or mode command a heartbeat contradicting it is taken for
 /// one sent before the command (1.5 heartbeat periods at 1 Hz), ms.
-pub const COMMAND_ACCEPTED_GRACE_MS: u64 = 1500;
+pub const COMMAND_ACCEPTED_GRACE: Duration = Duration::from_millis(1500);
 
 /// What the autopilot last told us.
 #[derive(Clone, Copy, Debug, Default)]
@@ -351,7 +360,7 @@ pub struct DaemonCore<P> {
     features: [f32; FEATURES],
 }
 
-impl<P: Policy> DaemonCore<P> {
+impl<P: OnboardPolicy> DaemonCore<P> {
     /// A core with no mission, no world and no autopilot heard yet.
     pub fn new(config: CoreConfig, policy: P) -> Self {
         DaemonCore {
@@ -414,7 +423,7 @@ impl<P: Policy> DaemonCore<P> {
         // A heartbeat sent before the autopilot accepted our command can arrive after its
         // acknowledgement; within the grace period it does not undo what was acknowledged.
         let fresh = |accepted: Option<Millis>| {
-            accepted.is_none_or(|at| now.since(at) > COMMAND_ACCEPTED_GRACE_MS)
+            accepted.is_none_or(|at| now.since(at) > COMMAND_ACCEPTED_GRACE)
         };
         if armed || fresh(self.autopilot.arm_accepted_at) {
             self.autopilot.armed = armed;
@@ -428,7 +437,7 @@ impl<P: Policy> DaemonCore<P> {
     /// The autopilot accepted one of our commands (COMMAND_ACK with MAV_RESULT_ACCEPTED): it
     /// is armed, or in the control mode, from now, instead of from its next HEARTBEAT (up to a
     /// second later at 1 Hz, a second the drones would hover after takeoff). Heartbeats stay
-    /// the authority: one that says otherwise after [`COMMAND_ACCEPTED_GRACE_MS`] (a pilot's
+    /// the authority: one that says otherwise after [`COMMAND_ACCEPTED_GRACE`] (a pilot's
     /// switch away, a disarm) wins. (The ACK names no requester in the dialect as built, so a
     /// forwarded ACK of another client's mode switch could pass for ours; the autopilot then
     /// ignores our setpoints anyway, and the release is noticed one grace period later.)
@@ -494,7 +503,7 @@ impl<P: Policy> DaemonCore<P> {
     /// No whole uplink message for longer than the uplink timeout.
     fn uplink_silent(&self, now: Millis) -> bool {
         self.last_message_at
-            .is_none_or(|t| now.since(t) > self.config.uplink_timeout_ms)
+            .is_none_or(|t| now.since(t) > self.config.uplink_timeout)
     }
 
     /// A decoded uplink message from the ground.
@@ -564,7 +573,7 @@ impl<P: Policy> DaemonCore<P> {
     }
 
     /// One control tick at `now`: what to send. Call at the control rate (>= 10 Hz).
-    pub fn tick(&mut self, now: Millis) -> Decision {
+    pub fn tick(&mut self, now: Millis) -> ControlOutput {
         self.counters.ticks += 1;
         let decision = self.decide(now);
         if decision.command.is_some() {
@@ -583,8 +592,8 @@ impl<P: Policy> DaemonCore<P> {
         decision
     }
 
-    fn decide(&mut self, now: Millis) -> Decision {
-        let hold = |reason| Decision {
+    fn decide(&mut self, now: Millis) -> ControlOutput {
+        let hold = |reason| ControlOutput {
             setpoint: Some(Setpoint::HOLD),
             command: None,
             status: Status::Holding(reason),
@@ -592,10 +601,10 @@ impl<P: Policy> DaemonCore<P> {
         let link_ok = self
             .autopilot
             .last_heard
-            .is_some_and(|t| now.since(t) <= self.config.autopilot_timeout_ms);
+            .is_some_and(|t| now.since(t) <= self.config.autopilot_timeout);
         let mission = match &mut self.mission {
             Mission::Idle => {
-                return Decision {
+                return ControlOutput {
                     setpoint: None,
                     command: None,
                     status: Status::Idle,
@@ -627,7 +636,7 @@ impl<P: Policy> DaemonCore<P> {
         }
         let streaming_since = *mission.streaming_since.get_or_insert(now);
         if !in_control {
-            let retry = self.config.command_retry_ms;
+            let retry = self.config.command_retry;
             let due = |last: Option<Millis>| last.is_none_or(|t| now.since(t) >= retry);
             let (command, step) = if !self.autopilot.armed {
                 let command = due(mission.last_arm_request).then(|| {
@@ -635,7 +644,7 @@ impl<P: Policy> DaemonCore<P> {
                     AutopilotCommand::Arm
                 });
                 (command, Preparing::Arming)
-            } else if now.since(streaming_since) < self.config.stream_before_mode_ms {
+            } else if now.since(streaming_since) < self.config.stream_before_mode {
                 (None, Preparing::Streaming)
             } else {
                 let command = due(mission.last_mode_request).then(|| {
@@ -646,7 +655,7 @@ impl<P: Policy> DaemonCore<P> {
                 });
                 (command, Preparing::SwitchingMode)
             };
-            return Decision {
+            return ControlOutput {
                 setpoint: Some(Setpoint::HOLD),
                 command,
                 status: Status::Preparing(step),
@@ -655,7 +664,7 @@ impl<P: Policy> DaemonCore<P> {
         mission.engaged = true;
         let mission = *mission;
         let (setpoint, status) = self.fly(now, &mission);
-        Decision {
+        ControlOutput {
             setpoint: Some(setpoint),
             command: None,
             status,
@@ -666,16 +675,17 @@ impl<P: Policy> DaemonCore<P> {
     fn fly(&mut self, now: Millis, mission: &ActiveMission) -> (Setpoint, Status) {
         let hold = |reason| (Setpoint::HOLD, Status::Holding(reason));
         let own = match self.autopilot.position {
-            Some((p, at)) if now.since(at) <= self.config.autopilot_timeout_ms => p,
+            Some((p, at)) if now.since(at) <= self.config.autopilot_timeout => p,
             _ => return hold(HoldReason::NoPosition),
         };
         let Some((world, received)) = self.world.as_ref() else {
             return hold(HoldReason::NoSnapshot);
         };
-        let age_ms = now.since(*received);
+        let age = now.since(*received);
+        let age_ms = u64::try_from(age.as_millis()).unwrap_or(u64::MAX);
         let max_speed = self.config.max_speed.min(world.max_speed);
         let mut limits = Limits::arena(world.area, max_speed);
-        limits.max_snapshot_age_s = self.config.uplink_timeout_ms as f32 / 1000.0;
+        limits.max_snapshot_age_s = self.config.uplink_timeout.as_millis() as f32 / 1000.0;
         // The actor learned to herd from as low as the ground; this drone may not fly below
         // its altitude band, so it reads its height above the band's floor (feature 22): held
         // at the floor, it is as low as it can go, as the actor expects. Only the encoding
@@ -692,7 +702,7 @@ impl<P: Policy> DaemonCore<P> {
             self.herders.push(encoded_own);
             self.herders.len() - 1
         };
-        let (request, own_reason) = if age_ms > self.config.uplink_timeout_ms {
+        let (request, own_reason) = if age > self.config.uplink_timeout {
             ([0.0; 3], Some(HoldReason::UplinkStale { age_ms }))
         } else {
             let input = ObsInput {
@@ -768,7 +778,7 @@ mod tests {
 
     /// Always "full speed along the local first axis", i.e. from the flock towards the goal.
     struct TowardsGoal;
-    impl Policy for TowardsGoal {
+    impl OnboardPolicy for TowardsGoal {
         fn act(&mut self, _task: Task, _features: &[f32; FEATURES]) -> [f32; 3] {
             [1.0, 0.0, 0.0]
         }
@@ -836,7 +846,7 @@ mod tests {
         let d = c.tick(Millis(100));
         assert_eq!(
             d,
-            Decision {
+            ControlOutput {
                 setpoint: None,
                 command: None,
                 status: Status::Idle
@@ -914,7 +924,7 @@ mod tests {
         c.on_uplink(Millis(1300), snapshot(2));
         assert_eq!(c.tick(Millis(1300)).status, Status::Flying(Reasons::NONE));
         // A heartbeat past the grace period that says otherwise wins: a pilot took over.
-        let later = 1300 + COMMAND_ACCEPTED_GRACE_MS + 100;
+        let later = 1300 + COMMAND_ACCEPTED_GRACE.as_millis() as u64 + 100;
         autopilot(&mut c, later, true, 0);
         c.on_uplink(Millis(later), snapshot(3));
         assert_eq!(
@@ -936,9 +946,9 @@ mod tests {
     fn own_position_comes_from_the_autopilot_not_the_snapshot() {
         /// Records feature 22, own height above the altitude band's floor, `ln(1 + h / R)`.
         struct Altitude(f32);
-        impl Policy for Altitude {
+        impl OnboardPolicy for Altitude {
             fn act(&mut self, _task: Task, features: &[f32; FEATURES]) -> [f32; 3] {
-                self.0 = features[22];
+                self.0 = features[obs::feature::ALTITUDE];
                 [0.0; 3]
             }
         }

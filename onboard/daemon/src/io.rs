@@ -38,7 +38,7 @@ use mavlink::{
     SigningData, UdpConfig, UdpMode,
 };
 
-use crate::control::{AutopilotCommand, DaemonCore, Millis, Policy, Setpoint, Status};
+use crate::control::{AutopilotCommand, DaemonCore, Millis, OnboardPolicy, Setpoint, Status};
 
 use skyherd_link::AUTOPILOT_COMPONENT_ID;
 /// Our MAVLink component id: `MAV_COMP_ID_ONBOARD_COMPUTER`.
@@ -46,7 +46,7 @@ pub use skyherd_link::DAEMON_COMPONENT_ID as COMPONENT_ID;
 use skyherd_link::command::{command_long, velocity_setpoint_ned};
 use skyherd_link::signing::{SigningKey, signing_data};
 /// HEARTBEAT period, ms of the daemon's clock.
-pub const HEARTBEAT_PERIOD_MS: u64 = 1000;
+pub const HEARTBEAT_PERIOD: Duration = Duration::from_millis(1000);
 /// Slowest control rate accepted, Hz: PX4 leaves OFFBOARD when setpoints come slower than 2 Hz.
 pub const MIN_RATE_HZ: f32 = 2.0;
 /// Length of a MAVLink 2 signing key.
@@ -462,7 +462,7 @@ fn spawn_reader(
     }
 }
 
-impl<P: Policy> Daemon<P> {
+impl<P: OnboardPolicy> Daemon<P> {
     /// Opens both links and starts their reader threads.
     pub fn connect(options: &LinkOptions, core: DaemonCore<P>) -> Result<Self, IoError> {
         if let ClockMode::Wall { rate_hz } = options.clock {
@@ -551,11 +551,7 @@ impl<P: Policy> Daemon<P> {
         let mut next_heartbeat = Millis(0);
         while !self.stop.load(Ordering::Relaxed) {
             let wait = match self.clock {
-                ClockMode::Wall { .. } => Duration::from_millis(
-                    next_tick
-                        .since(wall_now())
-                        .min(READ_TIMEOUT.as_millis() as u64),
-                ),
+                ClockMode::Wall { .. } => next_tick.since(wall_now()).min(READ_TIMEOUT),
                 ClockMode::Simulator => READ_TIMEOUT,
             };
             let event = match self.events.recv_timeout(wait) {
@@ -617,7 +613,7 @@ impl<P: Policy> Daemon<P> {
                     }
                     ClockMode::Simulator => self.send_ground_heartbeat(),
                 }
-                next_heartbeat = Millis(now.0 + HEARTBEAT_PERIOD_MS);
+                next_heartbeat = now.after(HEARTBEAT_PERIOD);
             }
         }
         info!(

@@ -18,7 +18,7 @@ use std::fmt;
 use skyherd_model::{ActorShape, FloatActor, ModelMeta, quantize};
 
 use crate::control::{
-    AutopilotCommand, CoreConfig, DaemonCore, HoldReason, Millis, Policy, Status,
+    AutopilotCommand, CoreConfig, DaemonCore, HoldReason, Millis, OnboardPolicy, Status,
 };
 use skyherd_link::Flavour;
 use skyherd_onboard::Task;
@@ -318,7 +318,7 @@ fn norm(v: [f32; 3]) -> f32 {
 
 /// A scripted PX4: obeys arm and mode commands at once, reports its position every tick.
 /// Uplink messages reach the core as wire chunks, in reverse order.
-fn fly_mission<P: Policy>(
+fn fly_mission<P: OnboardPolicy>(
     policy: P,
     scene: &Scene,
     max_speed: f32,

@@ -109,7 +109,7 @@ fn run(args: RunArgs) -> Result<()> {
     let herder_index = args.herder_index.unwrap_or(usize::from(args.system_id) - 1);
     let mut config = CoreConfig::new(args.system_id, herder_index, flavour);
     config.max_speed = args.max_speed.unwrap_or(actor.max_speed());
-    config.uplink_timeout_ms = args.uplink_timeout_ms;
+    config.uplink_timeout = std::time::Duration::from_millis(args.uplink_timeout_ms);
     if !(config.max_speed.is_finite() && config.max_speed > 0.0) {
         bail!(
             "--max-speed must be a positive number of m/s, got {}",
