@@ -1,4 +1,6 @@
-//! skyherd-ground: the ground station's library.
+#![doc = include_str!("../README.md")]
+//!
+//! # The API in brief
 //!
 //! * [`fleet`]: the fleet link (UDP, TCP, serial) over `skyherd_link`'s codec and signing,
 //!   per-vehicle state, mission commands with COMMAND_ACK matching.

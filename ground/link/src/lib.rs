@@ -1,4 +1,6 @@
-//! skyherd-link: the MAVLink 2 facts every skyherd process shares, written once.
+#![doc = include_str!("../README.md")]
+//!
+//! # The API in brief
 //!
 //! The ground station (`skyherd-ground`), the companion-computer daemon (`skyherd-daemon`)
 //! and the mock autopilots (`skyherd-sitl`) all frame, sign and command through this crate,
@@ -22,8 +24,10 @@
 //! let mut ground = Codec::new(255, 190, None);
 //! let bytes = ground.encode(&velocity_setpoint_ned(1, 1, 0, [1.0, 0.0, 0.0]));
 //! let mut drone = Codec::new(1, 1, None);
-//! let frames = drone.decode_datagram(&bytes);
+//! let mut frames = Vec::new();
+//! drone.decode(&bytes, &mut frames);
 //! assert_eq!(frames.len(), 1);
+//! assert_eq!(frames[0].header.system_id, 255);
 //! assert_eq!(Flavour::Px4.external_mode().custom_mode(), 6 << 16);
 //! assert_eq!(VELOCITY_ONLY_TYPE_MASK, 0x0DC7);
 //! ```

@@ -1,9 +1,9 @@
 //! MAVLink 2 fleet links: the ground station's side (system id 255).
 //!
 //! Pure parts, usable without a socket:
-//! * [`codec`]: framing, signing and parsing with counted drops.
+//! * [`skyherd_link::codec`]: framing, signing and parsing with counted drops.
 //! * [`vehicle`]: per-vehicle state (mode, armed, LOCAL_POSITION_NED, battery, link quality).
-//! * [`command`]: arm/disarm, set mode, velocity setpoints, COMMAND_ACK matching.
+//! * [`skyherd_link::command`]: arm/disarm, set mode, velocity setpoints, COMMAND_ACK matching.
 //!
 //! The shell, [`GroundLink`], owns one transport (UDP, TCP or serial, opened from the same
 //! address strings as `mavlink::connect`: `udpin:`, `udpout:`, `tcpout:`, `serial:`), sends

@@ -5,7 +5,7 @@
 //!
 //! * **autopilot** (`udpout:127.0.0.1:14540`, `udpin:0.0.0.0:14540`, `serial:/dev/ttyTHS1:921600`,
 //!   `tcpout:…`): HEARTBEAT and LOCAL_POSITION_NED in; SET_POSITION_TARGET_LOCAL_NED
-//!   (frame LOCAL_NED, type_mask [`VELOCITY_ONLY_TYPE_MASK`]), COMMAND_LONG and our HEARTBEAT
+//!   (frame LOCAL_NED, type_mask [`VELOCITY_ONLY_TYPE_MASK`](skyherd_link::VELOCITY_ONLY_TYPE_MASK)), COMMAND_LONG and our HEARTBEAT
 //!   out. Unsigned.
 //! * **ground** (`udpin:0.0.0.0:14600`, …): TUNNEL frames (payload type 0) carrying the uplink
 //!   chunks in. With a signing key every frame must carry a valid MAVLink 2 signature; unsigned

@@ -1,5 +1,6 @@
-//! skyherd-daemon: the companion-computer daemon, a pure decision core and a thin I/O shell
-//! around the onboard core (`skyherd_onboard`'s encoder, quantized actor and safety rules).
+#![doc = include_str!("../README.md")]
+//!
+//! # The API in brief
 //!
 //! * [`control`] takes explicit state and time (ground uplink, autopilot telemetry, the daemon's
 //!   clock in milliseconds) and returns decisions: velocity setpoints in NED, autopilot commands,

@@ -1,4 +1,8 @@
-//! skyherd-sitl: software-in-the-loop pieces: mock autopilots speaking MAVLink 2 over UDP, a target
+#![doc = include_str!("../README.md")]
+//!
+//! # The API in brief
+//!
+//! Software-in-the-loop pieces: mock autopilots speaking MAVLink 2 over UDP, a target
 //! detection sensor, and link fault injection. Everything is driven by an explicit simulated
 //! clock (lockstep): whoever owns the loop steps the world, then each node with the same
 //! `now`.
