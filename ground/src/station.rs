@@ -188,7 +188,7 @@ impl fmt::Display for StationEvent {
 }
 
 /// Words for an abort reason, as the summary reports it.
-pub fn abort_text(reason: AbortReason) -> String {
+pub(crate) fn abort_text(reason: AbortReason) -> String {
     match reason {
         AbortReason::Geofence { system_id } => format!("geofence (drone {system_id})"),
         AbortReason::AllDronesLost => "all drones lost".to_string(),

@@ -101,7 +101,11 @@ impl<'m> Actor<'m> {
 ///
 /// Reads the first `model.features` values of `features` (missing ones count as 0; NaN becomes
 /// 0 before the zero point is added) into the front of `out`.
-pub fn quantize_input(model: &ModelView<'_>, features: &[f32], out: &mut [i16; MAX_FEATURES]) {
+pub(crate) fn quantize_input(
+    model: &ModelView<'_>,
+    features: &[f32],
+    out: &mut [i16; MAX_FEATURES],
+) {
     for (j, q) in out.iter_mut().enumerate().take(model.features) {
         let x = features.get(j).copied().unwrap_or(0.0);
         let scaled = roundf(x / model.input_scale(j)) + model.input_zero_point(j) as f32;
@@ -236,7 +240,7 @@ pub fn infer_quantized_any(model: &ModelView<'_>, task: Task, features: &[f32]) 
 }
 
 /// `tanh(scale * (q - zp))` with the task output layer's quantization: the normalised action.
-pub fn dequantize_action(model: &ModelView<'_>, task: Task, q: [i16; 3]) -> [f32; 3] {
+pub(crate) fn dequantize_action(model: &ModelView<'_>, task: Task, q: [i16; 3]) -> [f32; 3] {
     let layer = model.task_output(task);
     q.map(|q| tanhf(layer.output_scale * (q as i32 - layer.output_zero_point as i32) as f32))
 }

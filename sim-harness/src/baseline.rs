@@ -38,17 +38,17 @@ use crate::policy::{Policy, PolicyFactory};
 use crate::world::{World, dist2};
 
 /// Stand-off behind a pushed target, in goal radii (8 m at R = 45 m).
-pub const STANDOFF_R: f64 = 8.0 / 45.0;
+pub(crate) const STANDOFF_R: f64 = 8.0 / 45.0;
 /// How far inside the walls a herder keeps, in goal radii (1 m at R = 45 m).
-pub const WALL_MARGIN_R: f64 = 1.0 / 45.0;
+pub(crate) const WALL_MARGIN_R: f64 = 1.0 / 45.0;
 /// Strömbom's driving arc behind the flock, radians (120 degrees).
-pub const STROMBOM_ARC: f64 = 120.0 * std::f64::consts::PI / 180.0;
+pub(crate) const STROMBOM_ARC: f64 = 120.0 * std::f64::consts::PI / 180.0;
 /// [`Method::Enclose`] starts wrapping its arc round the flock at this centroid distance, goal radii.
-pub const ENCLOSE_WRAP_R: f64 = 2.0;
+pub(crate) const ENCLOSE_WRAP_R: f64 = 2.0;
 /// [`Method::Enclose`] shifts its closed ring this far goalwards of the centroid, in goal radii.
-pub const ENCLOSE_SHIFT_R: f64 = 0.8;
+pub(crate) const ENCLOSE_SHIFT_R: f64 = 0.8;
 /// Herding altitude, in goal radii (2 m at R = 45 m).
-pub const ALTITUDE_R: f64 = 2.0 / 45.0;
+pub(crate) const ALTITUDE_R: f64 = 2.0 / 45.0;
 
 /// The rule-based methods.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -421,7 +421,7 @@ fn wrap_angle(a: f64) -> f64 {
 }
 
 /// The point `standoff` beyond `target` on the ray from `from` through it.
-pub fn behind_point(target: [f64; 2], from: [f64; 2], standoff: f64) -> [f64; 2] {
+pub(crate) fn behind_point(target: [f64; 2], from: [f64; 2], standoff: f64) -> [f64; 2] {
     behind(target, from, standoff)
 }
 

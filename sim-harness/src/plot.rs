@@ -55,7 +55,7 @@ const PALETTE: [RGBColor; 6] = [
 ];
 
 /// A viridis-like ramp for `t` in [0, 1] (dark blue -> green -> yellow).
-pub fn time_colour(t: f64) -> RGBColor {
+pub(crate) fn time_colour(t: f64) -> RGBColor {
     const STOPS: [(f64, [f64; 3]); 5] = [
         (0.0, [68.0, 1.0, 84.0]),
         (0.25, [59.0, 82.0, 139.0]),

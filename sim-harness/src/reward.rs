@@ -152,7 +152,7 @@ pub fn reward(p: &RewardParams, f: &StepFacts) -> RewardTerms {
 
 /// `sum_{t=1}^{steps} gamma^t = gamma (1 - gamma^steps) / (1 - gamma)`: the remaining steps
 /// discounted as seen from the leaving step (`steps` when gamma = 1).
-pub fn discounted_steps(gamma: f64, steps: u64) -> f64 {
+pub(crate) fn discounted_steps(gamma: f64, steps: u64) -> f64 {
     if (1.0 - gamma).abs() < 1e-12 {
         steps as f64
     } else {

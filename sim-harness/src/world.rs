@@ -342,7 +342,7 @@ pub(crate) fn dist2(a: [f64; 2], b: [f64; 2]) -> f64 {
 
 /// Scales `v` down to norm `max` if it is longer; keeps its direction.
 #[inline]
-pub fn cap2(v: [f64; 2], max: f64) -> [f64; 2] {
+pub(crate) fn cap2(v: [f64; 2], max: f64) -> [f64; 2] {
     let n2 = v[0] * v[0] + v[1] * v[1];
     if n2 > max * max {
         let s = max / n2.sqrt();
@@ -354,7 +354,7 @@ pub fn cap2(v: [f64; 2], max: f64) -> [f64; 2] {
 
 /// 3-D version of [`cap2`].
 #[inline]
-pub fn cap3(v: [f64; 3], max: f64) -> [f64; 3] {
+pub(crate) fn cap3(v: [f64; 3], max: f64) -> [f64; 3] {
     let n2 = v[0] * v[0] + v[1] * v[1] + v[2] * v[2];
     if n2 > max * max {
         let s = max / n2.sqrt();

@@ -364,7 +364,7 @@ pub fn load_actor(path: &Path) -> Result<MultiTaskMlp, CheckpointError> {
 
 /// Writes a checkpoint atomically (temporary file, then rename), so a run killed mid-write
 /// leaves the previous checkpoint intact.
-pub fn save(path: &Path, checkpoint: &Checkpoint) -> Result<(), CheckpointError> {
+pub(crate) fn save(path: &Path, checkpoint: &Checkpoint) -> Result<(), CheckpointError> {
     let bytes = to_bytes(checkpoint)?;
     let io = |source| CheckpointError::Io {
         path: path.to_owned(),

@@ -125,7 +125,7 @@ pub fn head_parameters(actor: &MultiTaskMlp, task: usize) -> Vec<f32> {
 }
 
 /// Writes `theta` (laid out as [`head_parameters`]) into the task's layers.
-pub fn set_head_parameters(actor: &mut MultiTaskMlp, task: usize, theta: &[f32]) {
+pub(crate) fn set_head_parameters(actor: &mut MultiTaskMlp, task: usize, theta: &[f32]) {
     let mut at = 0;
     for layer in [&mut actor.task_inputs[task], &mut actor.task_outputs[task]] {
         for part in [&mut layer.weights, &mut layer.bias] {
@@ -170,7 +170,7 @@ impl Scoring {
 }
 
 /// Fraction of `world`'s targets inside the goal circle (1 for an empty flock).
-pub fn fraction_inside(world: &World) -> f64 {
+pub(crate) fn fraction_inside(world: &World) -> f64 {
     let n = world.targets.len();
     if n == 0 {
         return 1.0;
@@ -208,7 +208,7 @@ pub fn fitness(
 }
 
 /// [`fitness`], with each scenario's mean score beside it (in the order of `scenarios`).
-pub fn fitness_by_scenario(
+pub(crate) fn fitness_by_scenario(
     actor: &MultiTaskMlp,
     scenarios: &[(Scenario, usize)],
     scoring: Scoring,
@@ -398,7 +398,7 @@ pub fn evolve_task(
 
 /// As [`centred_rank_differences`], with tied scores sharing their mean rank, so that a scenario
 /// where every actor scores alike (all fail, or all finish on the same step) adds nothing.
-pub fn tied_centred_rank_differences(scores: &[[f64; 2]]) -> Vec<f32> {
+pub(crate) fn tied_centred_rank_differences(scores: &[[f64; 2]]) -> Vec<f32> {
     let n = 2 * scores.len();
     let mut order = both_sides(scores);
     order.sort_by(|a, b| a.0.total_cmp(&b.0));
@@ -435,7 +435,7 @@ fn pair_differences(rank: &[f32]) -> Vec<f32> {
 
 /// Per antithetic pair, `rank(+) - rank(-)` with ranks centred in `[-0.5, 0.5]`: the fitness
 /// shaping that makes the step blind to the scale of the scores (and to outliers).
-pub fn centred_rank_differences(scores: &[[f64; 2]]) -> Vec<f32> {
+pub(crate) fn centred_rank_differences(scores: &[[f64; 2]]) -> Vec<f32> {
     let n = 2 * scores.len();
     let mut order = both_sides(scores);
     order.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));

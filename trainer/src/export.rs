@@ -41,7 +41,7 @@ fn to_model_dense(d: &Dense) -> ModelDense {
 }
 
 /// The trained actor in the model crate's f32 form (same layout, a copy).
-pub fn to_float_actor(actor: &MultiTaskMlp) -> FloatActor {
+pub(crate) fn to_float_actor(actor: &MultiTaskMlp) -> FloatActor {
     FloatActor {
         task_inputs: actor.task_inputs.iter().map(to_model_dense).collect(),
         shared: actor.shared.iter().map(to_model_dense).collect(),

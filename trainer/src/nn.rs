@@ -24,7 +24,7 @@ use serde::{Deserialize, Serialize};
 /// and column strides. Checks that every index stays inside its slice, so the single `unsafe`
 /// call below cannot read or write out of bounds.
 #[allow(clippy::too_many_arguments)]
-pub fn gemm(
+pub(crate) fn gemm(
     m: usize,
     k: usize,
     n: usize,

@@ -92,7 +92,7 @@ pub fn training_scenario(
 
 /// The per-step cost of idling and flying at full speed, `k0 (k3 |r3| N + s k4 v_max M)` with
 /// `s` the flight scale: the natural unit of an episode's rewards.
-pub fn step_cost(s: &Scenario, flight_scale: f64) -> f64 {
+pub(crate) fn step_cost(s: &Scenario, flight_scale: f64) -> f64 {
     let r = &s.reward;
     let cost = r.k0
         * (r.k3 * r.r3.abs() * s.targets as f64
@@ -101,7 +101,7 @@ pub fn step_cost(s: &Scenario, flight_scale: f64) -> f64 {
 }
 
 /// The reward the learner sees for one step.
-pub fn learner_reward(out: &StepOutcome, reward: &RewardConfig, step_cost: f64) -> f32 {
+pub(crate) fn learner_reward(out: &StepOutcome, reward: &RewardConfig, step_cost: f64) -> f32 {
     let mut r = out.reward - (1.0 - reward.flight_scale) * out.terms.flight;
     if reward.normalize_by_step_cost {
         r /= step_cost;
@@ -356,7 +356,7 @@ impl Rollouts {
 }
 
 /// The curriculum's scenario draw at `progress` (a fraction of the DDPG phase).
-pub fn draw_from_stage(
+pub(crate) fn draw_from_stage(
     config: &TrainConfig,
     progress: f64,
     rng: &mut ChaCha8Rng,
@@ -366,7 +366,7 @@ pub fn draw_from_stage(
 }
 
 /// A draw from any stage at random: the warm start's demonstrations cover the whole curriculum.
-pub fn draw_from_all_stages(config: &TrainConfig, rng: &mut ChaCha8Rng, task: Task) -> Draw {
+pub(crate) fn draw_from_all_stages(config: &TrainConfig, rng: &mut ChaCha8Rng, task: Task) -> Draw {
     let stages = &config.curriculum.stages;
     draw_in(
         config,

@@ -161,7 +161,7 @@ impl Default for LinkConfig {
 }
 
 /// Wall-clock microseconds since the Unix epoch (0 if the clock is before 1970).
-pub fn unix_now_us() -> u64 {
+pub(crate) fn unix_now_us() -> u64 {
     std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
         .map(|d| d.as_micros() as u64)

@@ -48,7 +48,7 @@ use skyherd_link::signing::{SigningKey, signing_data};
 /// HEARTBEAT period, ms of the daemon's clock.
 pub const HEARTBEAT_PERIOD: Duration = Duration::from_millis(1000);
 /// Slowest control rate accepted, Hz: PX4 leaves OFFBOARD when setpoints come slower than 2 Hz.
-pub const MIN_RATE_HZ: f32 = 2.0;
+pub(crate) const MIN_RATE_HZ: f32 = 2.0;
 /// Length of a MAVLink 2 signing key.
 pub const KEY_LEN: usize = 32;
 
@@ -362,13 +362,13 @@ const READ_TIMEOUT: Duration = Duration::from_millis(100);
 /// under the simulator's own wait for the answer (`SitlConfig::lockstep_timeout`, 50 ms):
 /// before the mission starts no snapshot comes, every tick waits this long, and an answer later
 /// than the simulator waits would land in the next tick.
-pub const LOCKSTEP_SNAPSHOT_WAIT: Duration = Duration::from_millis(20);
+pub(crate) const LOCKSTEP_SNAPSHOT_WAIT: Duration = Duration::from_millis(20);
 
 /// Whether a snapshot stamped `snapshot_ms` (the ground's clock) is older than the position
 /// of `now` (the autopilot's clock), both simulated time in lockstep. A millisecond of slack
 /// absorbs their different rounding. No snapshot at all is behind too: the ground's first one
 /// (and the mission command it sends just before) may be on its way.
-pub fn snapshot_is_behind(snapshot_ms: Option<u64>, now: Millis) -> bool {
+pub(crate) fn snapshot_is_behind(snapshot_ms: Option<u64>, now: Millis) -> bool {
     snapshot_ms.is_none_or(|ms| ms + 1 < now.0)
 }
 

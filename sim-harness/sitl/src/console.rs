@@ -120,7 +120,7 @@ impl MissionWatch {
 }
 
 /// Words for an ending.
-pub fn ending_text(ending: Ending) -> &'static str {
+pub(crate) fn ending_text(ending: Ending) -> &'static str {
     match ending {
         Ending::Success => "every target in the goal",
         Ending::LeftArea => "something left the arena",
