@@ -48,7 +48,7 @@ use skyherd_link::signing::{SigningKey, signing_data};
 /// HEARTBEAT period, ms of the daemon's clock.
 pub const HEARTBEAT_PERIOD: Duration = Duration::from_millis(1000);
 /// Slowest control rate accepted, Hz: PX4 leaves OFFBOARD when setpoints come slower than 2 Hz.
-pub(crate) const MIN_RATE_HZ: f32 = 2.0;
+pub const MIN_RATE_HZ: f32 = 2.0;
 /// Length of a MAVLink 2 signing key.
 pub const KEY_LEN: usize = 32;
 
