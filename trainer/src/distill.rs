@@ -19,20 +19,9 @@
 //! use skyherd_trainer::config::EvolutionScenario;
 //! use skyherd_trainer::distill::{DistillConfig, TeachScenario, distill};
 //! use skyherd_trainer::network::{MlpShape, MultiTaskMlp};
-//! use skyherd_trainer::nn::Activation;
 //!
 //! let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
-//! let actor = MultiTaskMlp::new(
-//!     MlpShape {
-//!         tasks: 2,
-//!         inputs: 46,
-//!         hidden: 8,
-//!         shared_layers: 1,
-//!         outputs: 3,
-//!         output_activation: Activation::Tanh,
-//!     },
-//!     &mut rng,
-//! );
+//! let actor = MultiTaskMlp::new(MlpShape::actor(46, 8, 1), &mut rng);
 //! let config = DistillConfig {
 //!     rounds: 2,
 //!     updates_per_round: 20,
@@ -605,21 +594,10 @@ fn train_round(
 mod tests {
     use super::*;
     use crate::network::MlpShape;
-    use crate::nn::Activation;
 
     fn tiny() -> MultiTaskMlp {
         let mut rng = ChaCha8Rng::seed_from_u64(3);
-        MultiTaskMlp::new(
-            MlpShape {
-                tasks: 2,
-                inputs: FEATURES,
-                hidden: 32,
-                shared_layers: 1,
-                outputs: 3,
-                output_activation: Activation::Tanh,
-            },
-            &mut rng,
-        )
+        MultiTaskMlp::new(MlpShape::actor(FEATURES, 32, 1), &mut rng)
     }
 
     fn tiny_config() -> DistillConfig {
@@ -750,17 +728,7 @@ mod tests {
     fn an_older_encoders_actor_is_widened_and_a_wider_one_refused() {
         use skyherd_onboard::obs::V3_FEATURES;
         let mut rng = ChaCha8Rng::seed_from_u64(3);
-        let v3 = MultiTaskMlp::new(
-            MlpShape {
-                tasks: 2,
-                inputs: V3_FEATURES,
-                hidden: 32,
-                shared_layers: 1,
-                outputs: 3,
-                output_activation: Activation::Tanh,
-            },
-            &mut rng,
-        );
+        let v3 = MultiTaskMlp::new(MlpShape::actor(V3_FEATURES, 32, 1), &mut rng);
         let config = DistillConfig {
             rounds: 1,
             updates_per_round: 20,

@@ -22,20 +22,9 @@
 //! use skyherd_trainer::config::{EvolutionConfig, EvolutionScenario};
 //! use skyherd_trainer::evolve::{evolve_task, head_parameters};
 //! use skyherd_trainer::network::{MlpShape, MultiTaskMlp};
-//! use skyherd_trainer::nn::Activation;
 //!
 //! let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
-//! let actor = MultiTaskMlp::new(
-//!     MlpShape {
-//!         tasks: 2,
-//!         inputs: 46,
-//!         hidden: 8,
-//!         shared_layers: 1,
-//!         outputs: 3,
-//!         output_activation: Activation::Tanh,
-//!     },
-//!     &mut rng,
-//! );
+//! let actor = MultiTaskMlp::new(MlpShape::actor(46, 8, 1), &mut rng);
 //! let config = EvolutionConfig {
 //!     generations: 1,
 //!     population: 2,
@@ -468,21 +457,10 @@ fn adam_ascent(theta: &mut [f32], grad: &[f32], m: &mut [f32], v: &mut [f32], t:
 mod tests {
     use super::*;
     use crate::network::MlpShape;
-    use crate::nn::Activation;
 
     fn tiny_actor() -> MultiTaskMlp {
         let mut rng = ChaCha8Rng::seed_from_u64(3);
-        MultiTaskMlp::new(
-            MlpShape {
-                tasks: 2,
-                inputs: 46,
-                hidden: 8,
-                shared_layers: 1,
-                outputs: 3,
-                output_activation: Activation::Tanh,
-            },
-            &mut rng,
-        )
+        MultiTaskMlp::new(MlpShape::actor(46, 8, 1), &mut rng)
     }
 
     #[test]

@@ -163,23 +163,12 @@ pub fn parity(
 mod tests {
     use super::*;
     use crate::network::MlpShape;
-    use crate::nn::Activation;
     use rand::SeedableRng;
 
     #[test]
     fn model_crate_float_actor_matches_the_training_actor() {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(2);
-        let mut actor = MultiTaskMlp::new(
-            MlpShape {
-                tasks: 2,
-                inputs: FEATURES,
-                hidden: 32,
-                shared_layers: 1,
-                outputs: 3,
-                output_activation: Activation::Tanh,
-            },
-            &mut rng,
-        );
+        let mut actor = MultiTaskMlp::new(MlpShape::actor(FEATURES, 32, 1), &mut rng);
         for l in actor.task_outputs.iter_mut() {
             *l = Dense::new_uniform(l.inputs, l.outputs, &mut rng);
         }
@@ -205,14 +194,7 @@ mod tests {
         // mtddpg-v1 and -v2 read v3's 46 features; re-exported, they must say so.
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(6);
         let actor = MultiTaskMlp::new(
-            MlpShape {
-                tasks: 2,
-                inputs: skyherd_onboard::obs::V3_FEATURES,
-                hidden: 16,
-                shared_layers: 1,
-                outputs: 3,
-                output_activation: Activation::Tanh,
-            },
+            MlpShape::actor(skyherd_onboard::obs::V3_FEATURES, 16, 1),
             &mut rng,
         );
         let obs = record_observations(&actor, &calibration_scenarios()[..2], 1, 5, 20, 1)
@@ -226,17 +208,7 @@ mod tests {
         let p = parity(&actor, &bytes, &obs).expect("parity");
         assert!(p.rms_component < 0.05, "{p:?}");
         // No encoder gives 40 features.
-        let odd = MultiTaskMlp::new(
-            MlpShape {
-                tasks: 2,
-                inputs: 40,
-                hidden: 8,
-                shared_layers: 1,
-                outputs: 3,
-                output_activation: Activation::Tanh,
-            },
-            &mut rng,
-        );
+        let odd = MultiTaskMlp::new(MlpShape::actor(40, 8, 1), &mut rng);
         assert!(matches!(
             export(&odd, 5.0, &obs),
             Err(ExportError::Width(40))

@@ -7,20 +7,9 @@
 //!
 //! ```
 //! use skyherd_trainer::network::{MlpShape, MultiTaskMlp};
-//! use skyherd_trainer::nn::Activation;
 //! use rand::SeedableRng;
 //! let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
-//! let actor = MultiTaskMlp::new(
-//!     MlpShape {
-//!         tasks: 2,
-//!         inputs: 46,
-//!         hidden: 64,
-//!         shared_layers: 1,
-//!         outputs: 3,
-//!         output_activation: Activation::Tanh,
-//!     },
-//!     &mut rng,
-//! );
+//! let actor = MultiTaskMlp::new(MlpShape::actor(46, 64, 1), &mut rng);
 //! let action = actor.predict(0, &[0.1; 46]);
 //! assert_eq!(action.len(), 3);
 //! assert!(action.iter().all(|a| a.abs() <= 1.0));
@@ -50,6 +39,21 @@ pub struct MlpShape {
     pub outputs: usize,
     /// What the output layer applies.
     pub output_activation: Activation,
+}
+
+impl MlpShape {
+    /// An actor's shape: two tasks (driving, collecting), `inputs` features in, a velocity
+    /// (3 outputs, tanh) out.
+    pub fn actor(inputs: usize, hidden: usize, shared_layers: usize) -> Self {
+        Self {
+            tasks: 2,
+            inputs,
+            hidden,
+            shared_layers,
+            outputs: 3,
+            output_activation: Activation::Tanh,
+        }
+    }
 }
 
 /// A multi-task MLP: per-task input layer -> shared hidden layers -> per-task output layer.
@@ -313,17 +317,7 @@ mod tests {
     #[test]
     fn widening_adds_inputs_that_change_nothing_until_trained() {
         let mut rng = ChaCha8Rng::seed_from_u64(4);
-        let net = MultiTaskMlp::new(
-            MlpShape {
-                tasks: 2,
-                inputs: 5,
-                hidden: 8,
-                shared_layers: 1,
-                outputs: 3,
-                output_activation: Activation::Tanh,
-            },
-            &mut rng,
-        );
+        let net = MultiTaskMlp::new(MlpShape::actor(5, 8, 1), &mut rng);
         let wide = net.widen_inputs(7).expect("wider");
         assert_eq!((wide.inputs(), wide.hidden(), wide.outputs()), (7, 8, 3));
         let x = [0.3, -0.2, 0.9, 0.1, -0.7];

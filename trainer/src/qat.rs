@@ -183,22 +183,11 @@ mod tests {
     use super::*;
     use crate::export::{calibration_scenarios, export, parity, record_observations};
     use crate::network::MlpShape;
-    use crate::nn::Activation;
 
     #[test]
     fn finetuning_brings_the_quantized_export_closer_to_the_teacher() {
         let mut rng = ChaCha8Rng::seed_from_u64(4);
-        let mut teacher = MultiTaskMlp::new(
-            MlpShape {
-                tasks: 2,
-                inputs: FEATURES,
-                hidden: 32,
-                shared_layers: 1,
-                outputs: 3,
-                output_activation: Activation::Tanh,
-            },
-            &mut rng,
-        );
+        let mut teacher = MultiTaskMlp::new(MlpShape::actor(FEATURES, 32, 1), &mut rng);
         // Steep int8 layers (shared and output), like a trained actor's, so that their rounding
         // matters: with the int16 first layer and activations of model format 2 the int8 weights
         // are where the error is.

@@ -473,17 +473,7 @@ mod tests {
         let mut config = TrainConfig::default();
         config.training.episode_step_limit = 5;
         let mut rng = ChaCha8Rng::seed_from_u64(1);
-        let actor = MultiTaskMlp::new(
-            MlpShape {
-                tasks: 2,
-                inputs: FEATURES,
-                hidden: 16,
-                shared_layers: 1,
-                outputs: 3,
-                output_activation: crate::nn::Activation::Tanh,
-            },
-            &mut rng,
-        );
+        let actor = MultiTaskMlp::new(MlpShape::actor(FEATURES, 16, 1), &mut rng);
         let fixed = |_: &mut ChaCha8Rng, task| Draw::paper(task, 4, 3);
         let mut draw = fixed;
         let mut rollouts =
