@@ -6,5 +6,6 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 ./scripts/setup.sh
-cargo build --release --locked -p skyherd-sitl -p skyherd-ground -p skyherd-daemon --bins
+echo "mission: building the simulator, the ground station and the daemon (release; minutes on a first run)"
+cargo build --quiet --release --locked -p skyherd-sitl -p skyherd-ground -p skyherd-daemon --bins
 exec target/release/skyherd-sitl "$@"

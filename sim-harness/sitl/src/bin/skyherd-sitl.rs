@@ -147,6 +147,7 @@ fn main() -> Result<()> {
     );
     let plots = skyherd_sim::plot::trajectory(&states, &title, &cli.out.join("trajectory"))
         .map_err(|e| anyhow::anyhow!("plotting the trajectory: {e}"))?;
+    println!("mission summary:");
     print!("{}", result.table());
     println!("  {:<13} {}", "result", result_path.display());
     for p in plots {
