@@ -28,6 +28,7 @@ use thiserror::Error;
 
 use crate::ddpg::{DdpgConfig, NetworkConfig};
 use crate::eval::EvalScenario;
+use crate::reward::{AuditedReward, RewardKind};
 
 /// Why a configuration was rejected.
 #[derive(Debug, Error)]
@@ -296,7 +297,7 @@ impl Default for WarmStartConfig {
 #[serde(deny_unknown_fields, default)]
 pub struct RewardConfig {
     /// Apply the simulator's `leave-covers-remaining-steps` correction of the suicide problem
-    /// (DESIGN §2) with the learner's gamma. Off: the paper's reward as printed.
+    /// (the printed reward rewards leaving: see `skyherd_sim::reward`) with the learner's gamma. Off: the paper's reward as printed.
     pub leave_correction: bool,
     /// Divide each episode's rewards by its idle-plus-flight cost per step,
     /// `k0 (k3 |r3| N + k4 v_max M)`, so that N = 1 and N = 256 episodes give Q-values of the
@@ -305,6 +306,12 @@ pub struct RewardConfig {
     /// Multiplies the flight term (eq 11). 1 is the paper; below 1 weakens the term that makes
     /// standing still cheaper than herding (see MODEL.md).
     pub flight_scale: f64,
+    /// Which reward the learner optimises: `paper` (the simulator's, with the three options
+    /// above) or `audited` (time cost, potential shaping, own flight cost, success bonus,
+    /// fixed leave penalty: `skyherd_trainer::reward`).
+    pub kind: RewardKind,
+    /// The weights of the `audited` reward.
+    pub audited: AuditedReward,
 }
 
 impl Default for RewardConfig {
@@ -313,6 +320,8 @@ impl Default for RewardConfig {
             leave_correction: true,
             normalize_by_step_cost: true,
             flight_scale: 0.1,
+            kind: RewardKind::Paper,
+            audited: AuditedReward::default(),
         }
     }
 }

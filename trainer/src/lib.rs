@@ -9,7 +9,8 @@
 //! * [`ddpg`]: the update (critic TD step, actor step, Polyak targets), imitation steps.
 //! * [`policy`]: decentralised execution through `skyherd_onboard::obs::encode` and
 //!   `LocalFrame::action_to_world`; any actor as a `skyherd_sim::Policy`.
-//! * [`rollout`]: environments of both tasks stepped together, the learner's reward.
+//! * [`rollout`]: environments of both tasks stepped together; [`reward`]: the learner's
+//!   reward (the paper's, or the audited one), checked by [`audit`] against hovering and the rules.
 //! * [`train`]: warm start (behaviour cloning of a rule), MTDDPG with a curriculum over N and
 //!   M, held-out evaluation keeping the best checkpoint; then [`evolve`]: evolution strategies
 //!   on each task's own layers, scored by completion time. [`config`] documents every knob.
@@ -37,6 +38,7 @@
 //! ```
 #![forbid(unsafe_op_in_unsafe_fn)]
 
+pub mod audit;
 pub mod checkpoint;
 pub mod config;
 pub mod ddpg;
@@ -50,5 +52,6 @@ pub mod policy;
 pub mod qat;
 pub mod replay;
 pub mod report;
+pub mod reward;
 pub mod rollout;
 pub mod train;

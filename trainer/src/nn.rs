@@ -3,7 +3,7 @@
 //!
 //! Batches are row-major `[batch][features]` slices. Weights are row-major `[out][in]`, the
 //! layout of `skyherd_model`'s `Dense`, so export is a copy. Matrix products go through
-//! `matrixmultiply::sgemm` (DESIGN §7: 2.7 ms per DDPG update at 128 units, batch 256).
+//! `matrixmultiply::sgemm` (about 2.7 ms per DDPG update at 128 units, batch 256, on a 2-core machine).
 //!
 //! ```
 //! use skyherd_trainer::nn::Dense;

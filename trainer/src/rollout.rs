@@ -14,7 +14,7 @@ use skyherd_onboard::obs::{FEATURES, LocalFrame};
 use skyherd_sim::baseline::{Method, RulePolicy};
 use skyherd_sim::obs::EncoderBuffers;
 use skyherd_sim::policy::act_all;
-use skyherd_sim::{Env, EnvError, HerderCount, Policy, RewardCorrection, Scenario, StepOutcome};
+use skyherd_sim::{Env, EnvError, HerderCount, Policy, RewardCorrection, Scenario};
 
 use crate::config::{
     CurriculumStage, ROOM_LAYOUT_MAX_TARGETS, RewardConfig, TrainConfig, WarmStartConfig,
@@ -22,6 +22,7 @@ use crate::config::{
 use crate::ddpg::ACTION_DIM;
 use crate::network::{MultiTaskMlp, Tape};
 use crate::replay::ReplayBuffer;
+use crate::reward::LearnerReward;
 
 /// One training scenario: task, N and M (0 = adaptive).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -90,25 +91,6 @@ pub fn training_scenario(
     s
 }
 
-/// The per-step cost of idling and flying at full speed, `k0 (k3 |r3| N + s k4 v_max M)` with
-/// `s` the flight scale: the natural unit of an episode's rewards.
-pub(crate) fn step_cost(s: &Scenario, flight_scale: f64) -> f64 {
-    let r = &s.reward;
-    let cost = r.k0
-        * (r.k3 * r.r3.abs() * s.targets as f64
-            + flight_scale * r.k4 * s.limits.herder * s.herder_count() as f64);
-    cost.max(1e-6)
-}
-
-/// The reward the learner sees for one step.
-pub(crate) fn learner_reward(out: &StepOutcome, reward: &RewardConfig, step_cost: f64) -> f32 {
-    let mut r = out.reward - (1.0 - reward.flight_scale) * out.terms.flight;
-    if reward.normalize_by_step_cost {
-        r /= step_cost;
-    }
-    r as f32
-}
-
 /// What one finished training episode did.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct EpisodeStats {
@@ -136,7 +118,7 @@ pub enum Controller<'a> {
 struct Slot {
     env: Env,
     draw: Draw,
-    step_cost: f64,
+    reward: LearnerReward,
     features: Vec<[f32; FEATURES]>,
     frames: Vec<Option<LocalFrame>>,
     rule: RulePolicy,
@@ -199,15 +181,16 @@ impl Rollouts {
     fn fresh_slot(&mut self, draw: Draw) -> Result<Slot, EnvError> {
         let scenario =
             training_scenario(draw, self.step_limit, self.noise, &self.reward, self.gamma);
-        let cost = step_cost(&scenario, self.reward.flight_scale);
+        let mut reward = LearnerReward::new(&self.reward, self.gamma, &scenario);
         let mut env = Env::new(scenario)?;
         // Training episode seeds stay below the held-out evaluation seeds (>= 1e9).
         let seed = self.rng.random_range(0..1_000_000_000u64);
         env.reset(seed);
+        reward.start(env.world());
         let mut slot = Slot {
             env,
             draw,
-            step_cost: cost,
+            reward,
             features: Vec::new(),
             frames: Vec::new(),
             rule: RulePolicy::new(Method::FarthestTargets),
@@ -232,6 +215,7 @@ impl Rollouts {
         let actions = self.choose_actions(controller);
         let mut finished = Vec::new();
         let mut velocities = Vec::new();
+        let mut herder_rewards = Vec::new();
         for (i, slot_actions) in actions.iter().enumerate() {
             let slot = &mut self.slots[i];
             velocities.clear();
@@ -241,8 +225,9 @@ impl Rollouts {
             }
             let out = slot.env.step(&velocities)?;
             self.env_steps += 1;
-            let r = learner_reward(&out, &self.reward, slot.step_cost);
-            slot.learner_return += f64::from(r);
+            slot.reward
+                .step(&out, slot.env.world(), &velocities, &mut herder_rewards);
+            slot.learner_return += herder_rewards.first().copied().map_or(0.0, f64::from);
             slot.paper_return += out.paper_reward;
             let before = std::mem::take(&mut slot.features);
             let before_frames = std::mem::take(&mut slot.frames);
@@ -254,6 +239,7 @@ impl Rollouts {
                 }
                 // A buffer as wide as an older encoder's features keeps that prefix.
                 let w = replay[task].obs_dim();
+                let r = herder_rewards[h];
                 replay[task].push(
                     &before[h][..w],
                     &slot_actions[h],
@@ -436,11 +422,13 @@ mod tests {
 
     #[test]
     fn suicide_no_longer_pays_under_the_learner_reward() {
-        // Leaving on step 1 must be worse than idling for the whole episode (DESIGN §2).
+        // Leaving on step 1 must be worse than idling for the whole episode (the printed reward
+        // rewards leaving: see `skyherd_sim::reward`).
         let config = TrainConfig::default();
         let draw = Draw::paper(Task::Driving, 16, 4);
         let s = training_scenario(draw, 600, false, &config.reward, 0.99);
-        let cost = step_cost(&s, config.reward.flight_scale);
+        let cost = crate::reward::step_cost(&s, config.reward.flight_scale);
+        let mut reward = LearnerReward::new(&config.reward, 0.99, &s);
         let gamma = 0.99_f64;
         // Idle: every step costs k0 k3 |r3| N (the targets barely move), discounted.
         let idle_per_step = -s.reward.k0 * s.reward.k3 * s.reward.r3.abs() * 16.0 / cost;
@@ -448,14 +436,17 @@ mod tests {
         // Fly one herder out of the arena: the first step ends the episode.
         let mut env = Env::new(s.clone()).expect("scenario");
         env.reset(3);
+        reward.start(env.world());
         let mut actions = vec![[0.0; 3]; 4];
+        let mut rewards = Vec::new();
         let mut leave = 0.0;
         let mut discount = 1.0;
         let out = loop {
             let h = env.world().herders[0];
             actions[0] = [if h[0] < 250.0 { -5.0 } else { 5.0 }, 0.0, 0.0];
             let out = env.step(&actions).expect("step");
-            leave += discount * f64::from(learner_reward(&out, &config.reward, cost));
+            reward.step(&out, env.world(), &actions, &mut rewards);
+            leave += discount * f64::from(rewards[0]);
             discount *= gamma;
             if out.terminated || out.truncated {
                 break out;

@@ -3,7 +3,7 @@
 //! encoder v4's 51):
 //! * on a small held-out evaluation (test-time noise), the success rates are within 1 point;
 //! * on observations recorded while the float actor herds, the RMS action error is at most 1 %
-//!   of the speed limit (the aim of DESIGN §4 and the trainer issue).
+//!   of the speed limit (the project's aim for the quantized actor).
 
 use std::path::Path;
 

@@ -20,7 +20,7 @@ use mavlink::dialects::common::{
     SET_POSITION_TARGET_LOCAL_NED_DATA, SYS_STATUS_DATA,
 };
 use skyherd_link::Flavour;
-use skyherd_link::{FlightMode, VELOCITY_ONLY_TYPE_MASK};
+use skyherd_link::{DAEMON_COMPONENT_ID, FlightMode, VELOCITY_ONLY_TYPE_MASK};
 
 /// Configuration of one mock autopilot. Units: seconds, metres, m/s, percent.
 #[derive(Debug, Clone, PartialEq)]
@@ -66,9 +66,6 @@ impl AutopilotConfig {
         }
     }
 }
-
-/// `MAV_COMP_ID_ONBOARD_COMPUTER`: the companion computer's component id.
-pub const MAV_COMP_ID_ONBOARD_COMPUTER: u8 = 191;
 
 /// PX4 accepts OFFBOARD only after setpoints streamed this long (s)...
 pub const PX4_STREAM_BEFORE_OFFBOARD: f64 = 1.0;
@@ -151,7 +148,7 @@ impl MockAutopilot {
     }
 
     /// When (s) the last HEARTBEAT arrived from this vehicle's companion computer (its own
-    /// system id, component [`MAV_COMP_ID_ONBOARD_COMPUTER`]). In lockstep the onboard daemon
+    /// system id, component [`DAEMON_COMPONENT_ID`]). In lockstep the onboard daemon
     /// ends its answer to every position with one (after any setpoint and command, on the same
     /// link), so a lockstep loop waits for it.
     pub fn companion_heartbeat_at(&self) -> Option<f64> {
@@ -206,7 +203,7 @@ impl MockAutopilot {
         now: f64,
     ) -> Vec<MavMessage> {
         if header.system_id == u32::from(self.config.system_id)
-            && header.component_id == MAV_COMP_ID_ONBOARD_COMPUTER
+            && header.component_id == DAEMON_COMPONENT_ID
             && matches!(message, MavMessage::HEARTBEAT(_))
         {
             self.companion_heartbeat_at = Some(now);

@@ -16,6 +16,8 @@ use clap::{Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
 use skyherd_onboard::actor::Actor;
 use skyherd_sim::baseline::{Method, RulePolicy};
+use skyherd_sim::learned::ModelPolicy;
+use skyherd_trainer::audit::{Candidate, audit, gate, markdown as audit_markdown};
 use skyherd_trainer::checkpoint;
 use skyherd_trainer::config::TrainConfig;
 use skyherd_trainer::distill::{DistillConfig, distill};
@@ -23,6 +25,7 @@ use skyherd_trainer::eval::{EvalScenario, evaluate_flat, markdown_table};
 use skyherd_trainer::export::{calibration_scenarios, export, parity, record_observations};
 use skyherd_trainer::policy::ActorPolicy;
 use skyherd_trainer::report::read_log;
+use skyherd_trainer::rollout::Draw;
 use skyherd_trainer::train::{EvolutionOutcome, Observer, evolve_checkpoint, train};
 
 #[derive(Parser)]
@@ -53,6 +56,40 @@ enum Command {
     Plot(PlotArgs),
     /// Evaluate a quantized model file (as it flies) and optionally the baselines, with test noise.
     Eval(EvalArgs),
+    /// The reward audit: the discounted return the learner would see for hovering, every rule
+    /// and optionally a model, beside success and time (`skyherd_trainer::audit`). With
+    /// `--gate`, exit non-zero unless every successful rule beats hovering and the rules rank
+    /// by completion time.
+    AuditReward(AuditRewardArgs),
+}
+
+#[derive(clap::Args, Debug)]
+struct AuditRewardArgs {
+    /// The training config whose reward, gamma and step limit are audited.
+    #[arg(long)]
+    config: PathBuf,
+    /// Episodes per scenario and policy (the same seeds for every policy).
+    #[arg(long, default_value_t = 8)]
+    episodes: usize,
+    /// First episode seed (held out from training and evaluation).
+    #[arg(long, default_value_t = 3_500_000_000)]
+    seed_base: u64,
+    /// Scenarios as `task:N:M` (M = 0 adaptive).
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "driving:4:4,driving:16:4,collecting:16:4,driving:16:1"
+    )]
+    scenarios: Vec<String>,
+    /// Also fly this model file.
+    #[arg(long)]
+    model: Option<PathBuf>,
+    /// Exit with status 1 when the gate fails.
+    #[arg(long)]
+    gate: bool,
+    /// Worker threads.
+    #[arg(long, default_value_t = 2)]
+    threads: usize,
 }
 
 #[derive(clap::Args, Debug)]
@@ -222,6 +259,7 @@ fn main() -> Result<()> {
         Command::Export(args) => run_export(args),
         Command::Plot(args) => run_plot(args),
         Command::Eval(args) => run_eval(args),
+        Command::AuditReward(args) => run_audit_reward(args),
     }
 }
 
@@ -468,5 +506,45 @@ fn run_eval(args: EvalArgs) -> Result<()> {
         }
         Ok(())
     })?;
+    Ok(())
+}
+
+fn run_audit_reward(args: AuditRewardArgs) -> Result<()> {
+    let config = TrainConfig::load(&args.config)?;
+    let draws: Vec<Draw> = args
+        .scenarios
+        .iter()
+        .map(|s| parse_scenario(s).map(|e| Draw::paper(e.task, e.targets, e.herders)))
+        .collect::<Result<_>>()?;
+    let mut candidates = Candidate::hover_and_rules();
+    if let Some(path) = &args.model {
+        let model = ModelPolicy::from_file(path).with_context(|| format!("{}", path.display()))?;
+        candidates.push(Candidate::Model(Box::new(model)));
+    }
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(args.threads)
+        .build()?;
+    let rows = pool.install(|| audit(&config, &draws, &candidates, args.episodes, args.seed_base));
+    println!(
+        "reward `{:?}`, gamma {}, step limit {}, {} episodes each, seeds from {}",
+        config.reward.kind,
+        config.ddpg.gamma,
+        config.training.episode_step_limit,
+        args.episodes,
+        args.seed_base
+    );
+    print!("{}", audit_markdown(&rows));
+    let report = gate(&rows);
+    if report.passed {
+        println!("gate: passed");
+    } else {
+        println!("gate: FAILED");
+        for p in &report.problems {
+            println!("  {p}");
+        }
+        if args.gate {
+            std::process::exit(1);
+        }
+    }
     Ok(())
 }

@@ -1,0 +1,315 @@
+//! The reward the learner sees, one number per herder per step, from the simulator's step and
+//! the world before and after it.
+//!
+//! Two kinds ([`RewardKind`]):
+//!
+//! * **`paper`**: the simulator's reward (eqs 7-11 with its leave correction when configured),
+//!   its flight term scaled, divided by the episode's step cost when normalising. Every herder
+//!   gets the team's number. This is what `mtddpg-v1` was trained with; under it hovering
+//!   beats every rule (see `skyherd-trainer audit-reward` and `docs/learning/`).
+//! * **`audited`**: a reward built so that finishing sooner is always better and doing nothing
+//!   is never a refuge, in units of one step:
+//!
+//!   ```text
+//!   r_h = - time_cost                                  every step, until the episode ends
+//!         + shaping (gamma Phi(s') - Phi(s))             potential-based: the optimal policy is
+//!                                                      the unshaped one's (Ng et al. 1999)
+//!         - flight_cost |v_h| / v_max                    this herder's own flight, not the team's
+//!         + success_bonus                                when every target is in the goal
+//!         - leave_penalty_horizons / (1 - gamma)         once, when anything leaves the arena
+//!   Phi(s) = - mean over targets of max(0, |p - g| - R) / R,   0 in a terminal state
+//!   ```
+//!
+//!   Hovering forever is worth `-time_cost / (1 - gamma)`; an episode that succeeds at step
+//!   `T` is worth `-time_cost (1 - gamma^T) / (1 - gamma)` plus its bonus, more for every step
+//!   saved; leaving costs more than hovering forever, at any step, so the observation needs no
+//!   clock. The shaping telescopes: over an episode it adds `gamma^T Phi(s_T) - Phi(s_0)`.
+//!
+//! The paper's reward stays what `eval` reports; this module only decides what the learner
+//! optimises.
+
+use serde::{Deserialize, Serialize};
+use skyherd_sim::{Scenario, StepOutcome, World};
+
+use crate::config::RewardConfig;
+
+/// Which reward the learner optimises.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum RewardKind {
+    /// The simulator's reward with the options of [`RewardConfig`] (the default, so older
+    /// configs train as they did).
+    #[default]
+    Paper,
+    /// Time cost, potential shaping, own flight cost, success bonus and a fixed leave penalty
+    /// ([`AuditedReward`]).
+    Audited,
+}
+
+/// The weights of the `audited` reward, in units of one step's time cost.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct AuditedReward {
+    /// Paid every step until the episode ends.
+    pub time_cost: f64,
+    /// Weight of the potential-based shaping on the flock's distance to the goal edge (in goal
+    /// radii, averaged over the targets).
+    pub shaping: f64,
+    /// Each herder pays this times its own speed over the speed limit, per step.
+    pub flight_cost: f64,
+    /// Paid once when every target is in the goal.
+    pub success_bonus: f64,
+    /// Leaving the arena costs this many horizons `1 / (1 - gamma)` of time cost, once: more
+    /// than hovering forever when it is above 1.
+    pub leave_penalty_horizons: f64,
+}
+
+impl Default for AuditedReward {
+    fn default() -> Self {
+        Self {
+            time_cost: 1.0,
+            shaping: 1.0,
+            flight_cost: 0.05,
+            success_bonus: 10.0,
+            leave_penalty_horizons: 2.0,
+        }
+    }
+}
+
+/// The potential of a world: minus the targets' mean distance beyond the goal edge, in goal
+/// radii (0 when every target is inside).
+pub fn potential(world: &World) -> f64 {
+    if world.targets.is_empty() {
+        return 0.0;
+    }
+    let [cx, cy] = world.goal.center;
+    let r = world.goal.radius.max(1e-9);
+    let outside: f64 = world
+        .targets
+        .iter()
+        .map(|p| (((p[0] - cx).powi(2) + (p[1] - cy).powi(2)).sqrt() - r).max(0.0) / r)
+        .sum();
+    -outside / world.targets.len() as f64
+}
+
+/// The per-step cost of idling and flying at full speed, `k0 (k3 |r3| N + s k4 v_max M)` with
+/// `s` the flight scale: the natural unit of an episode's paper rewards.
+pub(crate) fn step_cost(s: &Scenario, flight_scale: f64) -> f64 {
+    let r = &s.reward;
+    let cost = r.k0
+        * (r.k3 * r.r3.abs() * s.targets as f64
+            + flight_scale * r.k4 * s.limits.herder * s.herder_count() as f64);
+    cost.max(1e-6)
+}
+
+/// The learner's reward for one episode: call [`LearnerReward::start`] after each reset and
+/// [`LearnerReward::step`] after each step.
+#[derive(Clone, Debug)]
+pub struct LearnerReward {
+    config: RewardConfig,
+    gamma: f64,
+    step_cost: f64,
+    max_speed: f64,
+    potential: f64,
+}
+
+impl LearnerReward {
+    /// The reward of `config` for episodes of `scenario`, discounted by `gamma`.
+    pub fn new(config: &RewardConfig, gamma: f64, scenario: &Scenario) -> Self {
+        Self {
+            step_cost: step_cost(scenario, config.flight_scale),
+            max_speed: scenario.limits.herder.max(1e-9),
+            config: config.clone(),
+            gamma,
+            potential: 0.0,
+        }
+    }
+
+    /// A new episode begins in `world`.
+    pub fn start(&mut self, world: &World) {
+        self.potential = potential(world);
+    }
+
+    /// The reward of each herder for the step that led to `after` with the herders'
+    /// commanded `velocities` (m/s), written into `out` (resized to M).
+    pub fn step(
+        &mut self,
+        outcome: &StepOutcome,
+        after: &World,
+        velocities: &[[f64; 3]],
+        out: &mut Vec<f32>,
+    ) {
+        out.clear();
+        match self.config.kind {
+            RewardKind::Paper => {
+                let mut r =
+                    outcome.reward - (1.0 - self.config.flight_scale) * outcome.terms.flight;
+                if self.config.normalize_by_step_cost {
+                    r /= self.step_cost;
+                }
+                out.resize(velocities.len(), r as f32);
+            }
+            RewardKind::Audited => {
+                let a = &self.config.audited;
+                let next = if outcome.terminated {
+                    0.0
+                } else {
+                    potential(after)
+                };
+                let mut team = -a.time_cost + a.shaping * (self.gamma * next - self.potential);
+                if outcome.success {
+                    team += a.success_bonus;
+                }
+                if outcome.left_area {
+                    team -= a.leave_penalty_horizons * a.time_cost / (1.0 - self.gamma).max(1e-9);
+                }
+                self.potential = next;
+                out.extend(velocities.iter().map(|v| {
+                    let speed = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+                    (team - a.flight_cost * speed / self.max_speed) as f32
+                }));
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use skyherd_sim::scenario::HerderCount;
+    use skyherd_sim::{Env, Task};
+
+    fn scenario() -> Scenario {
+        let mut s = Scenario::paper(Task::Driving);
+        s.targets = 8;
+        s.herders = HerderCount::Fixed(2);
+        s.step_limit = 60;
+        s
+    }
+
+    fn audited(shaping: f64, flight_cost: f64) -> RewardConfig {
+        RewardConfig {
+            kind: RewardKind::Audited,
+            audited: AuditedReward {
+                time_cost: 0.0,
+                shaping,
+                flight_cost,
+                success_bonus: 0.0,
+                leave_penalty_horizons: 0.0,
+            },
+            ..RewardConfig::default()
+        }
+    }
+
+    /// Fly an episode of `scenario` with constant velocities; the rewards of herder 0.
+    fn episode(config: &RewardConfig, gamma: f64, velocity: [f64; 3]) -> (Vec<f32>, f64, f64) {
+        let scenario = scenario();
+        let mut env = Env::new(scenario.clone()).unwrap();
+        let mut reward = LearnerReward::new(config, gamma, &scenario);
+        env.reset(5);
+        reward.start(env.world());
+        let first = potential(env.world());
+        let mut rewards = Vec::new();
+        let mut per_herder = Vec::new();
+        loop {
+            let velocities = vec![velocity; env.world().herders.len()];
+            let out = env.step(&velocities).unwrap();
+            reward.step(&out, env.world(), &velocities, &mut per_herder);
+            rewards.push(per_herder[0]);
+            if out.terminated || out.truncated {
+                let last = if out.terminated {
+                    0.0
+                } else {
+                    potential(env.world())
+                };
+                return (rewards, first, last);
+            }
+        }
+    }
+
+    #[test]
+    fn the_shaping_telescopes_over_an_episode() {
+        let gamma = 0.97;
+        for velocity in [[0.0; 3], [3.0, -2.0, 0.0]] {
+            let (rewards, first, last) = episode(&audited(1.0, 0.0), gamma, velocity);
+            let discounted: f64 = rewards
+                .iter()
+                .enumerate()
+                .map(|(t, r)| gamma.powi(t as i32) * f64::from(*r))
+                .sum();
+            let expected = gamma.powi(rewards.len() as i32) * last - first;
+            assert!(
+                (discounted - expected).abs() < 1e-4 * (1.0 + expected.abs()),
+                "{discounted} vs {expected}"
+            );
+            assert!(first < 0.0, "targets start outside the goal");
+        }
+    }
+
+    #[test]
+    fn each_herder_pays_its_own_flight() {
+        let scenario = scenario();
+        let mut env = Env::new(scenario.clone()).unwrap();
+        let mut reward = LearnerReward::new(&audited(0.0, 0.5), 0.99, &scenario);
+        env.reset(1);
+        reward.start(env.world());
+        let v_max = scenario.limits.herder;
+        let velocities = [[v_max, 0.0, 0.0], [0.0; 3]];
+        let out = env.step(&velocities).unwrap();
+        let mut r = Vec::new();
+        reward.step(&out, env.world(), &velocities, &mut r);
+        assert!((f64::from(r[0]) + 0.5).abs() < 1e-6, "{r:?}");
+        assert_eq!(r[1], 0.0);
+    }
+
+    #[test]
+    fn leaving_costs_more_than_hovering_forever_and_success_pays() {
+        let gamma = 0.99;
+        let config = RewardConfig {
+            kind: RewardKind::Audited,
+            ..RewardConfig::default()
+        };
+        let a = &config.audited;
+        let hover_forever = -a.time_cost / (1.0 - gamma);
+        let scenario = scenario();
+        let mut env = Env::new(scenario.clone()).unwrap();
+        let mut reward = LearnerReward::new(&config, gamma, &scenario);
+        env.reset(2);
+        reward.start(env.world());
+        // Fly herder 0 straight out of the arena at full speed.
+        let mut r = Vec::new();
+        let mut total = 0.0;
+        for t in 0..400 {
+            let velocities = vec![[-5.0, -5.0, 0.0], [0.0; 3]];
+            let out = env.step(&velocities).unwrap();
+            reward.step(&out, env.world(), &velocities, &mut r);
+            total += gamma.powi(t) * f64::from(r[1]);
+            if out.left_area {
+                assert!(out.terminated);
+                break;
+            }
+            assert!(
+                !out.terminated && !out.truncated,
+                "still inside at step {t}"
+            );
+        }
+        assert!(total < hover_forever, "{total} vs {hover_forever}");
+    }
+
+    #[test]
+    fn the_paper_kind_gives_every_herder_the_team_reward() {
+        let scenario = scenario();
+        let config = RewardConfig::default();
+        let mut env = Env::new(scenario.clone()).unwrap();
+        let mut reward = LearnerReward::new(&config, 0.99, &scenario);
+        env.reset(3);
+        reward.start(env.world());
+        let velocities = [[1.0, 0.0, 0.0], [0.0; 3]];
+        let out = env.step(&velocities).unwrap();
+        let mut r = Vec::new();
+        reward.step(&out, env.world(), &velocities, &mut r);
+        let cost = step_cost(&scenario, config.flight_scale);
+        let expected = (out.reward - 0.9 * out.terms.flight) / cost;
+        assert_eq!(r, vec![expected as f32; 2]);
+    }
+}
