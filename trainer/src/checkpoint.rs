@@ -17,7 +17,7 @@ use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 use crate::config::TrainConfig;
-use crate::ddpg::Agent;
+use crate::ddpg::{Agent, TwinCritic};
 use crate::network::MultiTaskMlp;
 use crate::nn::{Activation, Adam, AdamConfig, Dense};
 
@@ -142,7 +142,24 @@ pub fn to_bytes(checkpoint: &Checkpoint) -> Result<Vec<u8>, CheckpointError> {
         "critic_adam_v",
         &adam_as_net(&a.critic_optimizer.second, &a.critic),
     );
+    if let Some(twin) = &a.twin {
+        push_net(&mut tensors, "critic2", &twin.critic);
+        push_net(&mut tensors, "target_critic2", &twin.target);
+        push_net(
+            &mut tensors,
+            "critic2_adam_m",
+            &adam_as_net(&twin.optimizer.first, &twin.critic),
+        );
+        push_net(
+            &mut tensors,
+            "critic2_adam_v",
+            &adam_as_net(&twin.optimizer.second, &twin.critic),
+        );
+    }
     let mut meta = net_meta("skyherd-trainer-checkpoint-v1", &a.actor);
+    if let Some(twin) = &a.twin {
+        meta.insert("critic2_adam_step".into(), twin.optimizer.step.to_string());
+    }
     meta.insert("updates".into(), a.updates.to_string());
     meta.insert("actor_adam_step".into(), a.actor_optimizer.step.to_string());
     meta.insert(
@@ -315,7 +332,23 @@ pub fn from_bytes(bytes: &[u8]) -> Result<Checkpoint, CheckpointError> {
         number("critic_adam_step")?,
         config.ddpg.critic_learning_rate,
     )?;
+    if config.ddpg.twin_critics {
+        let mut twin = TwinCritic::new(
+            net("critic2", Activation::Identity)?,
+            config.ddpg.critic_learning_rate,
+        );
+        twin.target = net("target_critic2", Activation::Identity)?;
+        twin.optimizer = adam(
+            "critic2_adam_m",
+            "critic2_adam_v",
+            Activation::Identity,
+            number("critic2_adam_step")?,
+            config.ddpg.critic_learning_rate,
+        )?;
+        agent.twin = Some(Box::new(twin));
+    }
     agent.updates = number("updates")?;
+    agent.reseed_noise();
     Ok(Checkpoint {
         agent,
         progress,
@@ -396,11 +429,21 @@ mod tests {
 
     #[test]
     fn save_and_load_round_trip_everything() {
+        round_trip(false);
+    }
+
+    #[test]
+    fn a_td3_checkpoint_keeps_its_twin_critic() {
+        round_trip(true);
+    }
+
+    fn round_trip(twin_critics: bool) {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
-        let config = TrainConfig {
+        let mut config = TrainConfig {
             seed: 99,
             ..TrainConfig::default()
         };
+        config.ddpg.twin_critics = twin_critics;
         let network = NetworkConfig {
             hidden: 8,
             shared_layers: 2,
@@ -431,7 +474,10 @@ mod tests {
             progress,
             config,
         };
-        let dir = std::env::temp_dir().join(format!("skyherd-ckpt-{}", std::process::id()));
+        let dir = std::env::temp_dir().join(format!(
+            "skyherd-ckpt-{}-{twin_critics}",
+            std::process::id()
+        ));
         let path = dir.join("c.safetensors");
         save(&path, &original).expect("save");
         let back = load(&path).expect("load");
@@ -443,6 +489,13 @@ mod tests {
         assert_eq!(a.actor_optimizer, b.actor_optimizer);
         assert_eq!(a.critic_optimizer, b.critic_optimizer);
         assert_eq!(a.updates, b.updates);
+        assert_eq!(a.twin.is_some(), twin_critics);
+        if let (Some(x), Some(y)) = (&a.twin, &b.twin) {
+            assert_eq!(x.critic, y.critic);
+            assert_eq!(x.target, y.target);
+            assert_eq!(x.optimizer, y.optimizer);
+        }
+        assert_eq!(a.twin.is_some(), b.twin.is_some());
         assert_eq!(back.progress, original.progress);
         assert_eq!(back.config, original.config);
         assert!(from_bytes(&to_bytes(&original).expect("bytes")[..100]).is_err());

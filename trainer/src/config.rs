@@ -399,6 +399,9 @@ pub struct LoopConfig {
     /// 25 m from the walls (the paper layout keeps 50 m and 150 m), so the long drives from
     /// corner to corner that the room asks for are met in training too.
     pub room_layout_fraction: f64,
+    /// The first this many environment steps of the DDPG phase fly random waypoints instead
+    /// of the actor (`rollout::Controller::RandomWaypoints`); they count towards `env_steps`.
+    pub random_warmup_steps: u64,
 }
 
 /// Largest flock drawn into the room layout.
@@ -418,6 +421,7 @@ impl Default for LoopConfig {
             threads: 2,
             noise: true,
             room_layout_fraction: 0.25,
+            random_warmup_steps: 0,
         }
     }
 }

@@ -11,8 +11,16 @@
 //!
 //! The critic sees the actor's features and the action (`FEATURES + 3` inputs); rewards are
 //! multiplied by `reward_scale` before they enter the TD target, so Q stays O(10).
+//!
+//! TD3 (Fujimoto et al. 2018), each part optional in [`DdpgConfig`]: twin critics whose
+//! smaller target value is the TD target (clipped double-Q), Gaussian smoothing noise on the
+//! target actor's action, and the delayed actor (`policy_frequency`). With n-step returns the
+//! replay's `continues` already holds `gamma^(k-1) (1 - terminated)` for a `k`-step
+//! transition, so the target is `r_k + gamma continues Q'` either way.
 
-use rand::Rng;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, Normal};
 use serde::{Deserialize, Serialize};
 
 use crate::network::{MlpShape, MultiTaskMlp, Tape};
@@ -59,8 +67,37 @@ pub struct DdpgConfig {
     pub policy_frequency: u32,
     /// Multiplies rewards before they reach the critic.
     pub reward_scale: f32,
-    /// Std of the Gaussian exploration noise on the normalised action.
+    /// Std of the exploration noise on the normalised action.
     pub exploration_noise: f32,
+    /// How exploration noise is drawn.
+    pub exploration: Exploration,
+    /// Mean reversion per step of the Ornstein-Uhlenbeck noise (its stationary std is
+    /// `exploration_noise`).
+    pub ou_theta: f32,
+    /// TD3: a second critic; the TD target takes the smaller of the two target critics.
+    pub twin_critics: bool,
+    /// TD3 target policy smoothing: std of the Gaussian noise added to the target actor's
+    /// action (0: none).
+    pub target_noise: f32,
+    /// The smoothing noise is clipped to plus or minus this.
+    pub target_noise_clip: f32,
+    /// Returns over this many steps (1: one-step TD), cut at terminals and bootstrapped at
+    /// truncation.
+    pub n_step: usize,
+    /// Planar herding: the vertical action is held at zero (the drones keep the altitude they
+    /// start at), in exploration, in the stored actions and in the TD target.
+    pub planar: bool,
+}
+
+/// How exploration noise is drawn.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Exploration {
+    /// Independent Gaussian noise every step.
+    #[default]
+    Gaussian,
+    /// Temporally correlated Ornstein-Uhlenbeck noise, one process per herder.
+    OrnsteinUhlenbeck,
 }
 
 impl Default for DdpgConfig {
@@ -74,6 +111,13 @@ impl Default for DdpgConfig {
             policy_frequency: 2,
             reward_scale: 0.1,
             exploration_noise: 0.1,
+            exploration: Exploration::Gaussian,
+            ou_theta: 0.15,
+            twin_critics: false,
+            target_noise: 0.0,
+            target_noise_clip: 0.5,
+            n_step: 1,
+            planar: false,
         }
     }
 }
@@ -108,7 +152,43 @@ pub struct Agent {
     pub config: DdpgConfig,
     /// Critic updates done so far.
     pub updates: u64,
+    /// TD3's second critic, when [`DdpgConfig::twin_critics`].
+    pub twin: Option<Box<TwinCritic>>,
+    /// Draws the target smoothing noise; seeded, so a run is reproducible.
+    pub noise_rng: ChaCha8Rng,
 }
+
+/// TD3's second critic with its target and optimiser.
+#[derive(Clone, Debug)]
+pub struct TwinCritic {
+    /// `Q2(s, a)`.
+    pub critic: MultiTaskMlp,
+    /// Slow copy of it.
+    pub target: MultiTaskMlp,
+    /// Its Adam state.
+    pub optimizer: Adam,
+}
+
+impl TwinCritic {
+    /// A twin around `critic` (target a copy, optimiser fresh).
+    pub fn new(critic: MultiTaskMlp, learning_rate: f32) -> Self {
+        let optimizer = Adam::new(
+            AdamConfig {
+                learning_rate,
+                ..AdamConfig::default()
+            },
+            critic.layers(),
+        );
+        Self {
+            target: critic.clone(),
+            critic,
+            optimizer,
+        }
+    }
+}
+
+/// Seed of the target smoothing noise after `updates` updates.
+const NOISE_SEED: u64 = 0x7D3_5EED;
 
 /// Row-wise `[obs | action]`.
 fn concat_rows(obs: &[f32], obs_dim: usize, actions: &[f32], rows: usize) -> Vec<f32> {
@@ -140,18 +220,24 @@ impl Agent {
             },
             rng,
         );
-        let critic = MultiTaskMlp::new(
-            MlpShape {
-                tasks,
-                inputs: obs_dim + ACTION_DIM,
-                hidden: network.hidden,
-                shared_layers: network.shared_layers,
-                outputs: 1,
-                output_activation: Activation::Identity,
-            },
-            rng,
-        );
-        Agent::from_networks(actor, critic, config)
+        let critic_shape = MlpShape {
+            tasks,
+            inputs: obs_dim + ACTION_DIM,
+            hidden: network.hidden,
+            shared_layers: network.shared_layers,
+            outputs: 1,
+            output_activation: Activation::Identity,
+        };
+        let critic = MultiTaskMlp::new(critic_shape, rng);
+        let mut agent = Agent::from_networks(actor, critic, config);
+        if config.twin_critics {
+            let second = MultiTaskMlp::new(critic_shape, rng);
+            agent.twin = Some(Box::new(TwinCritic::new(
+                second,
+                config.critic_learning_rate,
+            )));
+        }
+        agent
     }
 
     /// An agent around given networks (targets start as copies, optimisers fresh).
@@ -179,7 +265,15 @@ impl Agent {
             critic_optimizer,
             config,
             updates: 0,
+            twin: None,
+            noise_rng: ChaCha8Rng::seed_from_u64(NOISE_SEED),
         }
+    }
+
+    /// Re-seed the target smoothing noise from the update count, so that a run resumed from a
+    /// checkpoint is reproducible from that checkpoint.
+    pub fn reseed_noise(&mut self) {
+        self.noise_rng = ChaCha8Rng::seed_from_u64(NOISE_SEED ^ self.updates);
     }
 
     /// Feature width.
@@ -216,6 +310,9 @@ impl Agent {
             stats.actor_loss = self.actor_step(batches, demos, imitation_weight);
             self.target_actor.soft_update_from(&self.actor, c.tau);
             self.target_critic.soft_update_from(&self.critic, c.tau);
+            if let Some(twin) = self.twin.as_mut() {
+                twin.target.soft_update_from(&twin.critic, c.tau);
+            }
         }
         stats
     }
@@ -226,10 +323,55 @@ impl Agent {
         let stats = self.critic_step(batches);
         self.target_critic
             .soft_update_from(&self.critic, self.config.tau);
+        if let Some(twin) = self.twin.as_mut() {
+            twin.target.soft_update_from(&twin.critic, self.config.tau);
+        }
         stats
     }
 
-    /// 1. Critic: regress Q(s, a) onto the TD target, both tasks into one gradient.
+    /// The TD targets of one task's batch: `reward_scale r + gamma continues Q'(s', a')` with
+    /// `a'` the target actor's action (smoothed by TD3's clipped noise when configured, its
+    /// vertical part zero when planar) and `Q'` the target critic, or the smaller of the two
+    /// target critics with TD3's twins.
+    pub fn td_targets(&mut self, task: usize, b: &Batch) -> Vec<f32> {
+        let c = self.config;
+        let obs_dim = self.obs_dim();
+        let mut tape = Tape::default();
+        self.target_actor
+            .forward(task, &b.next_obs, b.size, &mut tape);
+        let mut next_actions = tape.output().to_vec();
+        if c.target_noise > 0.0
+            && let Ok(noise) = Normal::new(0.0_f32, c.target_noise)
+        {
+            for a in &mut next_actions {
+                let n = noise
+                    .sample(&mut self.noise_rng)
+                    .clamp(-c.target_noise_clip, c.target_noise_clip);
+                *a = (*a + n).clamp(-1.0, 1.0);
+            }
+        }
+        if c.planar {
+            next_actions
+                .chunks_exact_mut(ACTION_DIM)
+                .for_each(|a| a[2] = 0.0);
+        }
+        let next_input = concat_rows(&b.next_obs, obs_dim, &next_actions, b.size);
+        self.target_critic
+            .forward(task, &next_input, b.size, &mut tape);
+        let mut next_q = tape.output().to_vec();
+        if let Some(twin) = &self.twin {
+            twin.target.forward(task, &next_input, b.size, &mut tape);
+            for (q, q2) in next_q.iter_mut().zip(tape.output()) {
+                *q = q.min(*q2);
+            }
+        }
+        (0..b.size)
+            .map(|r| c.reward_scale * b.rewards[r] + c.gamma * b.continues[r] * next_q[r])
+            .collect()
+    }
+
+    /// 1. Critic: regress Q(s, a) (and TD3's Q2) onto the TD target, both tasks into one
+    /// gradient.
     fn critic_step(&mut self, batches: &[Batch]) -> UpdateStats {
         let obs_dim = self.obs_dim();
         let total: usize = batches.iter().map(|b| b.size).sum();
@@ -239,22 +381,12 @@ impl Agent {
                 ..UpdateStats::default()
             };
         }
-        let c = self.config;
         let mut stats = UpdateStats::default();
         let mut critic_grads = self.critic.zeros_like();
+        let mut twin_grads = self.twin.as_ref().map(|t| t.critic.zeros_like());
         let mut tape = Tape::default();
         for (task, b) in batches.iter().enumerate().filter(|(_, b)| b.size > 0) {
-            self.target_actor
-                .forward(task, &b.next_obs, b.size, &mut tape);
-            let next_actions = tape.output().to_vec();
-            let next_input = concat_rows(&b.next_obs, obs_dim, &next_actions, b.size);
-            self.target_critic
-                .forward(task, &next_input, b.size, &mut tape);
-            let targets: Vec<f32> = (0..b.size)
-                .map(|r| {
-                    c.reward_scale * b.rewards[r] + c.gamma * b.continues[r] * tape.output()[r]
-                })
-                .collect();
+            let targets = self.td_targets(task, b);
             let input = concat_rows(&b.obs, obs_dim, &b.actions, b.size);
             self.critic.forward(task, &input, b.size, &mut tape);
             let q = tape.output();
@@ -272,9 +404,23 @@ impl Agent {
             stats.q_mean += q.iter().sum::<f32>() / total as f32;
             self.critic
                 .backward(&tape, &d_q, Some(&mut critic_grads), false);
+            if let (Some(twin), Some(grads)) = (&self.twin, twin_grads.as_mut()) {
+                twin.critic.forward(task, &input, b.size, &mut tape);
+                let d_q2: Vec<f32> = tape
+                    .output()
+                    .iter()
+                    .zip(&targets)
+                    .map(|(q, y)| 2.0 * (q - y) / total as f32)
+                    .collect();
+                twin.critic.backward(&tape, &d_q2, Some(grads), false);
+            }
         }
         self.critic_optimizer
             .update(self.critic.layers_mut(), critic_grads.layers());
+        if let (Some(twin), Some(grads)) = (self.twin.as_mut(), twin_grads) {
+            twin.optimizer
+                .update(twin.critic.layers_mut(), grads.layers());
+        }
         self.updates += 1;
         stats
     }
@@ -291,7 +437,13 @@ impl Agent {
         let mut mean_abs_q = 0.0;
         for (task, b) in batches.iter().enumerate().filter(|(_, b)| b.size > 0) {
             self.actor.forward(task, &b.obs, b.size, &mut actor_tape);
-            let input = concat_rows(&b.obs, obs_dim, actor_tape.output(), b.size);
+            let mut actions = actor_tape.output().to_vec();
+            if self.config.planar {
+                actions
+                    .chunks_exact_mut(ACTION_DIM)
+                    .for_each(|a| a[2] = 0.0);
+            }
+            let input = concat_rows(&b.obs, obs_dim, &actions, b.size);
             self.critic.forward(task, &input, b.size, &mut tape);
             loss -= tape.output().iter().sum::<f32>() / total as f32;
             mean_abs_q += tape.output().iter().map(|q| q.abs()).sum::<f32>() / total as f32;
@@ -310,10 +462,20 @@ impl Agent {
                 .backward(q_tape, &d_q, None, true)
                 .unwrap_or_default();
             let stride = obs_dim + ACTION_DIM;
-            let d_action: Vec<f32> = d_input
+            let mut d_action: Vec<f32> = d_input
                 .chunks_exact(stride)
                 .flat_map(|row| row[obs_dim..].iter().copied())
                 .collect();
+            if self.config.planar {
+                // The critic never sees a vertical action: pull the actor's towards zero so
+                // the flown model holds its altitude too.
+                for (d, a) in d_action
+                    .chunks_exact_mut(ACTION_DIM)
+                    .zip(a_tape.output().chunks_exact(ACTION_DIM))
+                {
+                    d[2] = 2.0 * a[2] / total as f32;
+                }
+            }
             self.actor
                 .backward(a_tape, &d_action, Some(&mut actor_grads), false);
         }
@@ -368,6 +530,9 @@ impl Agent {
     pub fn sync_targets(&mut self) {
         self.target_actor = self.actor.clone();
         self.target_critic = self.critic.clone();
+        if let Some(twin) = self.twin.as_mut() {
+            twin.target = twin.critic.clone();
+        }
     }
 
     /// The deterministic action for one observation.
@@ -465,5 +630,143 @@ mod tests {
             last = agent.imitation_step(&batches);
         }
         assert!(last < 2e-3, "imitation loss {last}");
+    }
+
+    fn batch_of(obs_dim: usize, rows: usize, rng: &mut ChaCha8Rng) -> Batch {
+        let mut b = Batch {
+            size: rows,
+            ..Batch::default()
+        };
+        for r in 0..rows {
+            for _ in 0..obs_dim {
+                b.obs.push(rng.random_range(-1.0..1.0));
+                b.next_obs.push(rng.random_range(-1.0..1.0));
+            }
+            b.actions.extend([0.1, -0.2, 0.3]);
+            b.rewards.push(r as f32 - 2.0);
+            b.continues.push(if r % 3 == 0 { 0.0 } else { 0.5 });
+        }
+        b
+    }
+
+    #[test]
+    fn twin_critic_targets_take_the_smaller_target_value() {
+        let mut rng = ChaCha8Rng::seed_from_u64(12);
+        let config = DdpgConfig {
+            twin_critics: true,
+            gamma: 0.9,
+            reward_scale: 0.5,
+            ..DdpgConfig::default()
+        };
+        let network = NetworkConfig {
+            hidden: 16,
+            shared_layers: 1,
+        };
+        let mut agent = Agent::new(4, 2, network, config, &mut rng);
+        // Make the two target critics clearly different.
+        for layer in agent.twin.as_mut().unwrap().target.layers_mut() {
+            layer.bias.iter_mut().for_each(|b| *b += 0.3);
+        }
+        let b = batch_of(4, 6, &mut rng);
+        let targets = agent.td_targets(1, &b);
+        let mut tape = Tape::default();
+        agent
+            .target_actor
+            .forward(1, &b.next_obs, b.size, &mut tape);
+        let input = concat_rows(&b.next_obs, 4, tape.output(), b.size);
+        let forward = |net: &MultiTaskMlp| {
+            let mut tape = Tape::default();
+            net.forward(1, &input, b.size, &mut tape);
+            tape.output().to_vec()
+        };
+        let q1 = forward(&agent.target_critic);
+        let q2 = forward(&agent.twin.as_ref().unwrap().target);
+        for r in 0..b.size {
+            let expected = 0.5 * b.rewards[r] + 0.9 * b.continues[r] * q1[r].min(q2[r]);
+            assert!((targets[r] - expected).abs() < 1e-6, "row {r}");
+        }
+        assert!(q1.iter().zip(&q2).any(|(a, b)| a != b));
+        // A terminal row (continues 0) is the scaled reward alone.
+        assert_eq!(targets[0], 0.5 * b.rewards[0]);
+        // Without the twin the target is the first critic's.
+        agent.twin = None;
+        let single = agent.td_targets(1, &b);
+        for r in 0..b.size {
+            let expected = 0.5 * b.rewards[r] + 0.9 * b.continues[r] * q1[r];
+            assert!((single[r] - expected).abs() < 1e-6);
+        }
+    }
+
+    #[test]
+    fn target_smoothing_is_seeded_clipped_and_planar_zeroes_the_vertical_action() {
+        let mut rng = ChaCha8Rng::seed_from_u64(13);
+        let config = DdpgConfig {
+            target_noise: 5.0, // huge: every draw is clipped
+            target_noise_clip: 0.1,
+            planar: true,
+            ..DdpgConfig::default()
+        };
+        let network = NetworkConfig {
+            hidden: 8,
+            shared_layers: 1,
+        };
+        let mut a = Agent::new(3, 2, network, config, &mut rng);
+        let mut b = a.clone();
+        let batch = batch_of(3, 5, &mut rng);
+        assert_eq!(a.td_targets(0, &batch), b.td_targets(0, &batch));
+        let noisy = a.td_targets(0, &batch);
+        a.config.target_noise = 0.0;
+        let clean = a.td_targets(0, &batch);
+        assert_ne!(noisy, clean);
+        for (n, c) in noisy.iter().zip(&clean) {
+            // 0.1 of clipped noise on two action components moves Q' only a little.
+            assert!((n - c).abs() < 0.1, "{n} vs {c}");
+        }
+    }
+
+    #[test]
+    fn td3_learns_a_different_best_action_per_task() {
+        let mut rng = ChaCha8Rng::seed_from_u64(4);
+        let config = DdpgConfig {
+            batch_size: 64,
+            reward_scale: 1.0,
+            actor_learning_rate: 2e-3,
+            critic_learning_rate: 3e-3,
+            policy_frequency: 2,
+            twin_critics: true,
+            target_noise: 0.2,
+            ..DdpgConfig::default()
+        };
+        let network = NetworkConfig {
+            hidden: 64,
+            shared_layers: 1,
+        };
+        let mut agent = Agent::new(2, 2, network, config, &mut rng);
+        let best = [[0.5_f32, -0.3, 0.0], [-0.6, 0.2, 0.4]];
+        let mut buffers: Vec<ReplayBuffer> =
+            (0..2).map(|_| ReplayBuffer::new(2, 3, 4096)).collect();
+        for (task, buffer) in buffers.iter_mut().enumerate() {
+            for _ in 0..2000 {
+                let obs = [rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)];
+                let a: [f32; 3] = std::array::from_fn(|_| rng.random_range(-1.0..1.0));
+                let r = -(0..3).map(|k| (a[k] - best[task][k]).powi(2)).sum::<f32>();
+                buffer.push(&obs, &a, r, &obs, true);
+            }
+        }
+        let mut batches = vec![Batch::default(); 2];
+        for _ in 0..3000 {
+            for (b, buf) in batches.iter_mut().zip(&buffers) {
+                buf.sample(32, &mut rng, b);
+            }
+            agent.update(&batches);
+        }
+        for (task, target) in best.iter().enumerate() {
+            let a = agent.act(task, &[0.1, -0.2]);
+            let err: f32 = (0..3)
+                .map(|k| (a[k] - target[k]).powi(2))
+                .sum::<f32>()
+                .sqrt();
+            assert!(err < 0.15, "task {task}: {a:?} vs {target:?}");
+        }
     }
 }

@@ -30,7 +30,9 @@ pub struct ReplayBuffer {
     actions: Vec<f32>,
     rewards: Vec<f32>,
     next_obs: Vec<f32>,
-    terminated: Vec<bool>,
+    /// `gamma^(k-1) (1 - terminated)` of a `k`-step transition: what multiplies
+    /// `gamma Q'(s')` in its TD target.
+    continues: Vec<f32>,
 }
 
 /// A sampled minibatch, row-major.
@@ -46,7 +48,8 @@ pub struct Batch {
     pub rewards: Vec<f32>,
     /// `[size][obs_dim]`.
     pub next_obs: Vec<f32>,
-    /// `1 - terminated`: whether to bootstrap from `next_obs`.
+    /// `1 - terminated` for one-step transitions; `gamma^(k-1) (1 - terminated)` for `k`-step
+    /// ones: the TD target is `r + gamma continues Q'(next_obs)`.
     pub continues: Vec<f32>,
 }
 
@@ -64,7 +67,7 @@ impl ReplayBuffer {
             actions: vec![0.0; capacity * action_dim],
             rewards: vec![0.0; capacity],
             next_obs: vec![0.0; capacity * obs_dim],
-            terminated: vec![false; capacity],
+            continues: vec![1.0; capacity],
         }
     }
 
@@ -83,7 +86,7 @@ impl ReplayBuffer {
         self.obs_dim
     }
 
-    /// Adds a transition, overwriting the oldest when full.
+    /// Adds a one-step transition, overwriting the oldest when full.
     pub fn push(
         &mut self,
         obs: &[f32],
@@ -91,6 +94,20 @@ impl ReplayBuffer {
         reward: f32,
         next_obs: &[f32],
         terminated: bool,
+    ) {
+        let continues = if terminated { 0.0 } else { 1.0 };
+        self.push_discounted(obs, action, reward, next_obs, continues);
+    }
+
+    /// Adds a transition whose TD target is `reward + gamma continues Q'(next_obs)` (an
+    /// n-step transition: see [`NStep`]).
+    pub fn push_discounted(
+        &mut self,
+        obs: &[f32],
+        action: &[f32],
+        reward: f32,
+        next_obs: &[f32],
+        continues: f32,
     ) {
         assert_eq!(obs.len(), self.obs_dim, "observation width");
         assert_eq!(next_obs.len(), self.obs_dim, "next observation width");
@@ -101,7 +118,7 @@ impl ReplayBuffer {
         self.next_obs[i * o..(i + 1) * o].copy_from_slice(next_obs);
         self.actions[i * a..(i + 1) * a].copy_from_slice(action);
         self.rewards[i] = reward;
-        self.terminated[i] = terminated;
+        self.continues[i] = continues;
         self.next = (self.next + 1) % self.capacity;
         self.len = (self.len + 1).min(self.capacity);
     }
@@ -125,10 +142,85 @@ impl ReplayBuffer {
             batch
                 .next_obs
                 .extend_from_slice(&self.next_obs[i * o..(i + 1) * o]);
-            batch
-                .continues
-                .push(if self.terminated[i] { 0.0 } else { 1.0 });
+            batch.continues.push(self.continues[i]);
         }
+    }
+}
+
+/// One herder's n-step return accumulator: push each one-step transition, get back the
+/// n-step transitions that are complete.
+///
+/// A transition `k` steps old is emitted when `k = n` with `r_t + gamma r_(t+1) + ... +
+/// gamma^(n-1) r_(t+n-1)`, the state `n` steps later and `continues = gamma^(n-1)`. At a
+/// terminal every pending transition is emitted with its partial sum and `continues = 0` (no
+/// bootstrap past the end); at a truncation with its partial sum, the last state, and
+/// `continues = gamma^(k-1)` (bootstrapped: the episode was cut, not finished).
+#[derive(Clone, Debug)]
+pub struct NStep {
+    n: usize,
+    gamma: f32,
+    pending: std::collections::VecDeque<(Vec<f32>, Vec<f32>, f32, usize)>,
+}
+
+/// An n-step transition: `(obs, action, discounted reward sum, next_obs, continues)`.
+pub type NStepTransition = (Vec<f32>, Vec<f32>, f32, Vec<f32>, f32);
+
+impl NStep {
+    /// An accumulator for `n`-step returns (`n >= 1`) discounted by `gamma`.
+    pub fn new(n: usize, gamma: f32) -> Self {
+        Self {
+            n: n.max(1),
+            gamma,
+            pending: std::collections::VecDeque::new(),
+        }
+    }
+
+    /// One step `obs --action--> next_obs` with `reward`; `terminated` and `truncated` as the
+    /// environment said. The finished n-step transitions are appended to `out`.
+    pub fn push(
+        &mut self,
+        obs: &[f32],
+        action: &[f32],
+        reward: f32,
+        next_obs: &[f32],
+        terminated: bool,
+        truncated: bool,
+        out: &mut Vec<NStepTransition>,
+    ) {
+        // Every pending transition gains this step's reward at its own discount.
+        for (_, _, sum, steps) in self.pending.iter_mut() {
+            *sum += self.gamma.powi(*steps as i32) * reward;
+            *steps += 1;
+        }
+        self.pending
+            .push_back((obs.to_vec(), action.to_vec(), reward, 1));
+        if terminated || truncated {
+            for (o, a, sum, steps) in self.pending.drain(..) {
+                let continues = if terminated {
+                    0.0
+                } else {
+                    self.gamma.powi(steps as i32 - 1)
+                };
+                out.push((o, a, sum, next_obs.to_vec(), continues));
+            }
+            return;
+        }
+        if self.pending.front().is_some_and(|p| p.3 >= self.n)
+            && let Some((o, a, sum, steps)) = self.pending.pop_front()
+        {
+            out.push((
+                o,
+                a,
+                sum,
+                next_obs.to_vec(),
+                self.gamma.powi(steps as i32 - 1),
+            ));
+        }
+    }
+
+    /// Drop what is pending (a broken chain: an observation the encoder refused).
+    pub fn clear(&mut self) {
+        self.pending.clear();
     }
 }
 
@@ -163,5 +255,77 @@ mod tests {
             let terminated = (v as usize).is_multiple_of(2);
             assert_eq!(batch.continues[r], if terminated { 0.0 } else { 1.0 });
         }
+    }
+
+    fn run(n: usize, rewards: &[f32], terminated: bool) -> Vec<NStepTransition> {
+        let mut acc = NStep::new(n, 0.5);
+        let mut out = Vec::new();
+        for (t, r) in rewards.iter().enumerate() {
+            let last = t + 1 == rewards.len();
+            acc.push(
+                &[t as f32],
+                &[0.0],
+                *r,
+                &[t as f32 + 1.0],
+                last && terminated,
+                last && !terminated,
+                &mut out,
+            );
+        }
+        out
+    }
+
+    #[test]
+    fn n_step_sums_discount_and_bootstrap_n_steps_later() {
+        let out = run(3, &[1.0, 2.0, 4.0, 8.0, 16.0, 32.0], false);
+        // Transitions 0-3 are complete 3-step ones; at the truncation 4 and 5 are flushed.
+        assert_eq!(out.len(), 6);
+        let (o, _, sum, next, continues) = &out[0];
+        assert_eq!((o[0], next[0]), (0.0, 3.0));
+        assert_eq!(*sum, 1.0 + 0.5 * 2.0 + 0.25 * 4.0);
+        assert_eq!(
+            *continues, 0.25,
+            "gamma^(n-1): the target adds gamma * this * Q'"
+        );
+        for (k, (o, _, _, next, _)) in out.iter().take(4).enumerate() {
+            assert_eq!((o[0], next[0]), (k as f32, k as f32 + 3.0));
+        }
+    }
+
+    #[test]
+    fn n_step_targets_are_cut_at_a_terminal() {
+        let out = run(3, &[1.0, 2.0, 4.0, 8.0], true);
+        assert_eq!(out.len(), 4);
+        // The last three end at the terminal: partial sums, no bootstrap.
+        let tail: Vec<(f32, f32, f32)> = out[1..].iter().map(|t| (t.0[0], t.2, t.4)).collect();
+        assert_eq!(
+            tail,
+            vec![
+                (1.0, 2.0 + 2.0 + 2.0, 0.0),
+                (2.0, 4.0 + 4.0, 0.0),
+                (3.0, 8.0, 0.0)
+            ]
+        );
+        assert!(out.iter().all(|t| t.3[0] == 4.0 || t.0[0] == 0.0));
+    }
+
+    #[test]
+    fn n_step_targets_bootstrap_at_a_truncation_with_their_own_discount() {
+        let out = run(3, &[1.0, 2.0], false);
+        // Cut after two steps: the first bootstraps 2 steps on (gamma^1), the second 1 step.
+        assert_eq!(out.len(), 2);
+        assert_eq!(
+            (out[0].2, out[0].3[0], out[0].4),
+            (1.0 + 0.5 * 2.0, 2.0, 0.5)
+        );
+        assert_eq!((out[1].2, out[1].3[0], out[1].4), (2.0, 2.0, 1.0));
+    }
+
+    #[test]
+    fn one_step_n_step_is_the_plain_transition() {
+        let out = run(1, &[3.0, 5.0], true);
+        assert_eq!(out.len(), 2);
+        assert_eq!((out[0].2, out[0].3[0], out[0].4), (3.0, 1.0, 1.0));
+        assert_eq!((out[1].2, out[1].3[0], out[1].4), (5.0, 2.0, 0.0));
     }
 }

@@ -19,9 +19,9 @@ use skyherd_sim::{Env, EnvError, HerderCount, Policy, RewardCorrection, Scenario
 use crate::config::{
     CurriculumStage, ROOM_LAYOUT_MAX_TARGETS, RewardConfig, TrainConfig, WarmStartConfig,
 };
-use crate::ddpg::ACTION_DIM;
+use crate::ddpg::{ACTION_DIM, DdpgConfig, Exploration};
 use crate::network::{MultiTaskMlp, Tape};
-use crate::replay::ReplayBuffer;
+use crate::replay::{NStep, ReplayBuffer};
 use crate::reward::LearnerReward;
 
 /// One training scenario: task, N and M (0 = adaptive).
@@ -108,17 +108,36 @@ pub struct EpisodeStats {
 
 /// Who picks the actions.
 pub enum Controller<'a> {
-    /// The learned actor plus Gaussian exploration noise of this std (normalised units).
+    /// The learned actor plus exploration noise of this std (normalised units), drawn as
+    /// [`DdpgConfig::exploration`] says.
     Actor(&'a MultiTaskMlp, f32),
+    /// The random-waypoint warm-up: every herder flies at full speed towards a point drawn
+    /// uniformly in the arena, and draws a new one when it gets there (or after
+    /// [`WAYPOINT_STEPS`] steps). Fills the replay with varied, purposeful flight before the
+    /// actor has learned anything.
+    RandomWaypoints,
     /// The rule-based baselines, one per task and flock (the warm start's teacher table); their
     /// velocities are recorded as normalised local-frame actions.
     Baseline(&'a WarmStartConfig),
+}
+
+/// A warm-up waypoint is redrawn after this many steps even if not reached.
+pub const WAYPOINT_STEPS: u64 = 60;
+
+/// Per herder: its n-step accumulator, its Ornstein-Uhlenbeck noise state, its warm-up
+/// waypoint and when it was drawn.
+#[derive(Clone, Debug)]
+struct HerderState {
+    nstep: NStep,
+    ou: [f32; ACTION_DIM],
+    waypoint: Option<([f64; 2], u64)>,
 }
 
 struct Slot {
     env: Env,
     draw: Draw,
     reward: LearnerReward,
+    herders: Vec<HerderState>,
     features: Vec<[f32; FEATURES]>,
     frames: Vec<Option<LocalFrame>>,
     rule: RulePolicy,
@@ -136,6 +155,7 @@ pub struct Rollouts {
     gamma: f64,
     step_limit: u64,
     noise: bool,
+    ddpg: DdpgConfig,
     /// Environment steps taken (summed over slots).
     pub env_steps: u64,
 }
@@ -167,6 +187,7 @@ impl Rollouts {
             gamma: f64::from(config.ddpg.gamma),
             step_limit: config.training.episode_step_limit,
             noise: config.training.noise,
+            ddpg: config.ddpg,
             env_steps: 0,
         };
         for i in 0..count {
@@ -187,7 +208,13 @@ impl Rollouts {
         let seed = self.rng.random_range(0..1_000_000_000u64);
         env.reset(seed);
         reward.start(env.world());
+        let herder = HerderState {
+            nstep: NStep::new(self.ddpg.n_step, self.gamma as f32),
+            ou: [0.0; ACTION_DIM],
+            waypoint: None,
+        };
         let mut slot = Slot {
+            herders: vec![herder; env.world().herders.len()],
             env,
             draw,
             reward,
@@ -212,7 +239,11 @@ impl Rollouts {
         mut demos: Option<&mut [ReplayBuffer]>,
         draw: &mut dyn FnMut(&mut ChaCha8Rng, Task) -> Draw,
     ) -> Result<Vec<EpisodeStats>, EnvError> {
-        let actions = self.choose_actions(controller);
+        let mut actions = self.choose_actions(controller);
+        if self.ddpg.planar {
+            actions.iter_mut().flatten().for_each(|a| a[2] = 0.0);
+        }
+        let mut emitted = Vec::new();
         let mut finished = Vec::new();
         let mut velocities = Vec::new();
         let mut herder_rewards = Vec::new();
@@ -235,18 +266,37 @@ impl Rollouts {
             let task = slot.draw.task.index();
             for h in 0..before.len() {
                 if before_frames[h].is_none() || slot.frames[h].is_none() {
-                    continue; // an observation the encoder refused carries no transition
+                    // An observation the encoder refused carries no transition (and breaks
+                    // an n-step chain).
+                    slot.herders[h].nstep.clear();
+                    continue;
                 }
                 // A buffer as wide as an older encoder's features keeps that prefix.
                 let w = replay[task].obs_dim();
                 let r = herder_rewards[h];
-                replay[task].push(
-                    &before[h][..w],
-                    &slot_actions[h],
-                    r,
-                    &slot.features[h][..w],
-                    out.terminated,
-                );
+                if self.ddpg.n_step <= 1 {
+                    replay[task].push(
+                        &before[h][..w],
+                        &slot_actions[h],
+                        r,
+                        &slot.features[h][..w],
+                        out.terminated,
+                    );
+                } else {
+                    emitted.clear();
+                    slot.herders[h].nstep.push(
+                        &before[h][..w],
+                        &slot_actions[h],
+                        r,
+                        &slot.features[h][..w],
+                        out.terminated,
+                        out.truncated,
+                        &mut emitted,
+                    );
+                    for (o, a, sum, next, continues) in &emitted {
+                        replay[task].push_discounted(o, a, *sum, next, *continues);
+                    }
+                }
                 if let Some(d) = demos.as_deref_mut() {
                     let w = d[task].obs_dim();
                     d[task].push(
@@ -283,6 +333,11 @@ impl Rollouts {
                     .map(|s| vec![[0.0; 3]; s.features.len()])
                     .collect();
                 let noise = Normal::new(0.0_f32, noise_std.max(0.0)).ok();
+                let unit = Normal::new(0.0_f32, 1.0).ok();
+                let ou = self.ddpg.exploration == Exploration::OrnsteinUhlenbeck;
+                // x <- (1 - theta) x + sigma sqrt(1 - (1 - theta)^2) e: stationary std sigma.
+                let theta = self.ddpg.ou_theta.clamp(1e-3, 1.0);
+                let ou_scale = noise_std.max(0.0) * (1.0 - (1.0 - theta).powi(2)).sqrt();
                 let mut tape = Tape::default();
                 for task in Task::ALL {
                     // One batched forward per task over every herder of every slot.
@@ -303,13 +358,53 @@ impl Rollouts {
                     for (k, &(i, h)) in rows.iter().enumerate() {
                         let mut a = [0.0; 3];
                         for (j, v) in a.iter_mut().enumerate() {
-                            let n = noise.map_or(0.0, |d| d.sample(&mut self.rng));
+                            let n = if ou {
+                                let e = unit.map_or(0.0, |d| d.sample(&mut self.rng));
+                                let x = &mut self.slots[i].herders[h].ou[j];
+                                *x = (1.0 - theta) * *x + ou_scale * e;
+                                *x
+                            } else {
+                                noise.map_or(0.0, |d| d.sample(&mut self.rng))
+                            };
                             *v = (tape.output()[k * 3 + j] + n).clamp(-1.0, 1.0);
                         }
                         out[i][h] = a;
                     }
                 }
                 out
+            }
+            Controller::RandomWaypoints => {
+                let rng = &mut self.rng;
+                self.slots
+                    .iter_mut()
+                    .map(|s| {
+                        let world = s.env.observation();
+                        let (area, step) = (world.area, world.step);
+                        let v_max = world.limits.herder;
+                        (0..world.herders.len())
+                            .map(|h| {
+                                let p = world.herders[h];
+                                let state = &mut s.herders[h];
+                                let stale = state.waypoint.is_none_or(|(w, at)| {
+                                    step >= at + WAYPOINT_STEPS
+                                        || (w[0] - p[0]).hypot(w[1] - p[1]) < 0.02 * area.width
+                                });
+                                if stale {
+                                    let w = [
+                                        rng.random_range(0.0..area.width),
+                                        rng.random_range(0.0..area.depth),
+                                    ];
+                                    state.waypoint = Some((w, step));
+                                }
+                                let (w, _) = state.waypoint.unwrap_or(([p[0], p[1]], step));
+                                let (dx, dy) = (w[0] - p[0], w[1] - p[1]);
+                                let d = dx.hypot(dy).max(1e-9);
+                                let v = [(v_max * dx / d) as f32, (v_max * dy / d) as f32, 0.0];
+                                s.frames[h].map_or([0.0; 3], |f| f.world_to_action(v))
+                            })
+                            .collect()
+                    })
+                    .collect()
             }
             Controller::Baseline(teachers) => {
                 let mut velocities = Vec::new();

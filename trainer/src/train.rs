@@ -438,7 +438,11 @@ impl Run<'_> {
             0.0
         };
         while self.progress.env_steps < t.env_steps && self.wall() < t.wall_clock_limit_s {
-            let controller = Controller::Actor(&self.agent.actor, config.ddpg.exploration_noise);
+            let controller = if self.progress.env_steps < t.random_warmup_steps {
+                Controller::RandomWaypoints
+            } else {
+                Controller::Actor(&self.agent.actor, config.ddpg.exploration_noise)
+            };
             let before = rollouts.env_steps;
             let finished = rollouts.step(
                 &controller,
