@@ -371,7 +371,7 @@ impl Agent {
     }
 
     /// 1. Critic: regress Q(s, a) (and TD3's Q2) onto the TD target, both tasks into one
-    /// gradient.
+    ///    gradient.
     fn critic_step(&mut self, batches: &[Batch]) -> UpdateStats {
         let obs_dim = self.obs_dim();
         let total: usize = batches.iter().map(|b| b.size).sum();

@@ -165,6 +165,23 @@ pub struct NStep {
 /// An n-step transition: `(obs, action, discounted reward sum, next_obs, continues)`.
 pub type NStepTransition = (Vec<f32>, Vec<f32>, f32, Vec<f32>, f32);
 
+/// One environment step of one herder, as [`NStep::push`] takes it.
+#[derive(Clone, Copy, Debug)]
+pub struct OneStep<'a> {
+    /// The observation acted on.
+    pub obs: &'a [f32],
+    /// The action taken.
+    pub action: &'a [f32],
+    /// The reward received.
+    pub reward: f32,
+    /// The observation after the step.
+    pub next_obs: &'a [f32],
+    /// The episode ended (no bootstrap past it).
+    pub terminated: bool,
+    /// The episode was cut by the step limit (bootstrap past it).
+    pub truncated: bool,
+}
+
 impl NStep {
     /// An accumulator for `n`-step returns (`n >= 1`) discounted by `gamma`.
     pub fn new(n: usize, gamma: f32) -> Self {
@@ -175,18 +192,16 @@ impl NStep {
         }
     }
 
-    /// One step `obs --action--> next_obs` with `reward`; `terminated` and `truncated` as the
-    /// environment said. The finished n-step transitions are appended to `out`.
-    pub fn push(
-        &mut self,
-        obs: &[f32],
-        action: &[f32],
-        reward: f32,
-        next_obs: &[f32],
-        terminated: bool,
-        truncated: bool,
-        out: &mut Vec<NStepTransition>,
-    ) {
+    /// One step; the finished n-step transitions are appended to `out`.
+    pub fn push(&mut self, step: OneStep<'_>, out: &mut Vec<NStepTransition>) {
+        let OneStep {
+            obs,
+            action,
+            reward,
+            next_obs,
+            terminated,
+            truncated,
+        } = step;
         // Every pending transition gains this step's reward at its own discount.
         for (_, _, sum, steps) in self.pending.iter_mut() {
             *sum += self.gamma.powi(*steps as i32) * reward;
@@ -262,15 +277,15 @@ mod tests {
         let mut out = Vec::new();
         for (t, r) in rewards.iter().enumerate() {
             let last = t + 1 == rewards.len();
-            acc.push(
-                &[t as f32],
-                &[0.0],
-                *r,
-                &[t as f32 + 1.0],
-                last && terminated,
-                last && !terminated,
-                &mut out,
-            );
+            let step = OneStep {
+                obs: &[t as f32],
+                action: &[0.0],
+                reward: *r,
+                next_obs: &[t as f32 + 1.0],
+                terminated: last && terminated,
+                truncated: last && !terminated,
+            };
+            acc.push(step, &mut out);
         }
         out
     }

@@ -21,7 +21,7 @@ use crate::config::{
 };
 use crate::ddpg::{ACTION_DIM, DdpgConfig, Exploration};
 use crate::network::{MultiTaskMlp, Tape};
-use crate::replay::{NStep, ReplayBuffer};
+use crate::replay::{NStep, OneStep, ReplayBuffer};
 use crate::reward::LearnerReward;
 
 /// One training scenario: task, N and M (0 = adaptive).
@@ -284,15 +284,15 @@ impl Rollouts {
                     );
                 } else {
                     emitted.clear();
-                    slot.herders[h].nstep.push(
-                        &before[h][..w],
-                        &slot_actions[h],
-                        r,
-                        &slot.features[h][..w],
-                        out.terminated,
-                        out.truncated,
-                        &mut emitted,
-                    );
+                    let step = OneStep {
+                        obs: &before[h][..w],
+                        action: &slot_actions[h],
+                        reward: r,
+                        next_obs: &slot.features[h][..w],
+                        terminated: out.terminated,
+                        truncated: out.truncated,
+                    };
+                    slot.herders[h].nstep.push(step, &mut emitted);
                     for (o, a, sum, next, continues) in &emitted {
                         replay[task].push_discounted(o, a, *sum, next, *continues);
                     }
