@@ -402,6 +402,39 @@ pub struct LoopConfig {
     /// The first this many environment steps of the DDPG phase fly random waypoints instead
     /// of the actor (`rollout::Controller::RandomWaypoints`); they count towards `env_steps`.
     pub random_warmup_steps: u64,
+    /// The tasks trained (`["driving", "collecting"]`: MTDDPG; one task: the single-task arm
+    /// of the ablation, whose shared layers then learn from that task alone). The parallel
+    /// environments cycle through them; evaluation keeps the scenarios of these tasks.
+    #[serde(with = "task_list_serde")]
+    pub tasks: Vec<Task>,
+}
+
+/// Serde for a list of tasks by name.
+mod task_list_serde {
+    use serde::{Deserialize, Deserializer, Serializer, de::Error, ser::SerializeSeq};
+    use skyherd_model::Task;
+    use skyherd_sim::task::{parse_task, task_name};
+
+    pub(super) fn serialize<S: Serializer>(tasks: &[Task], s: S) -> Result<S::Ok, S::Error> {
+        let mut seq = s.serialize_seq(Some(tasks.len()))?;
+        for t in tasks {
+            seq.serialize_element(task_name(*t))?;
+        }
+        seq.end()
+    }
+
+    pub(super) fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<Task>, D::Error> {
+        Vec::<String>::deserialize(d)?
+            .iter()
+            .map(|name| {
+                parse_task(name).ok_or_else(|| {
+                    D::Error::custom(format!(
+                        "unknown task `{name}`, expected `driving` or `collecting`"
+                    ))
+                })
+            })
+            .collect()
+    }
 }
 
 /// Largest flock drawn into the room layout.
@@ -422,6 +455,7 @@ impl Default for LoopConfig {
             noise: true,
             room_layout_fraction: 0.25,
             random_warmup_steps: 0,
+            tasks: Task::ALL.to_vec(),
         }
     }
 }
@@ -527,6 +561,10 @@ impl TrainConfig {
         }
         if self.training.threads == 0 {
             return bad("training.threads", "must be >= 1");
+        }
+        let tasks = &self.training.tasks;
+        if tasks.is_empty() || (1..tasks.len()).any(|i| tasks[..i].contains(&tasks[i])) {
+            return bad("training.tasks", "needs one or both tasks, each once");
         }
         if self.curriculum.stages.is_empty() {
             return bad("curriculum.stages", "needs at least one stage");

@@ -10,7 +10,8 @@
 //! * [`policy`]: decentralised execution through `skyherd_onboard::obs::encode` and
 //!   `LocalFrame::action_to_world`; any actor as a `skyherd_sim::Policy`.
 //! * [`rollout`]: environments of both tasks stepped together; [`reward`]: the learner's
-//!   reward (the paper's, or the audited one), checked by [`audit`] against hovering and the rules.
+//!   reward (the paper's, or the audited one), checked by [`audit`] against hovering and the rules;
+//!   [`ablation`]: MTDDPG against single-task DDPG, read back from the runs' learning curves.
 //! * [`train`]: warm start (behaviour cloning of a rule), MTDDPG with a curriculum over N and
 //!   M, held-out evaluation keeping the best checkpoint; then [`evolve`]: evolution strategies
 //!   on each task's own layers, scored by completion time. [`config`] documents every knob.
@@ -38,6 +39,7 @@
 //! ```
 #![forbid(unsafe_op_in_unsafe_fn)]
 
+pub mod ablation;
 pub mod audit;
 pub mod checkpoint;
 pub mod config;

@@ -21,6 +21,9 @@ pub enum ReportError {
     /// The plotting backend failed.
     #[error("plot: {0}")]
     Plot(String),
+    /// A file is not in the format it should be (the message names the line).
+    #[error("bad file: {0}")]
+    Parse(String),
 }
 
 /// One line of the CSV log.

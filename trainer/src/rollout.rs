@@ -191,7 +191,8 @@ impl Rollouts {
             env_steps: 0,
         };
         for i in 0..count {
-            let task = Task::ALL[i % Task::COUNT];
+            let tasks = &config.training.tasks;
+            let task = tasks[i % tasks.len()];
             let d = draw(&mut r.rng, task);
             let slot = r.fresh_slot(d)?;
             r.slots.push(slot);

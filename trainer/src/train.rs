@@ -18,7 +18,7 @@
 //! Output in `output_dir`: `last.safetensors` (every `checkpoint_every_s` seconds and at the
 //! end, for `--resume`), `best.safetensors`, `evolved.safetensors`, `log.csv`, `curve.png`.
 
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use rand::SeedableRng;
@@ -206,6 +206,45 @@ pub fn evolve_checkpoint(
     })
 }
 
+/// Appends one evaluation's rows to `eval.csv` (written with its header when new): the learning
+/// curves per scenario that `skyherd-trainer ablation-report` reads.
+fn append_eval_rows(
+    path: &Path,
+    env_steps: u64,
+    task_env_steps: u64,
+    rows: &[EvalRow],
+) -> Result<(), TrainError> {
+    use std::io::Write as _;
+    let new = !path.exists();
+    let mut file = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(path)
+        .map_err(ReportError::from)?;
+    let mut text = String::new();
+    if new {
+        text.push_str(EVAL_CSV_HEADER);
+        text.push('\n');
+    }
+    for r in rows {
+        text.push_str(&format!(
+            "{env_steps},{task_env_steps},{},{},{},{},{},{},{}\n",
+            task_name(r.scenario.task),
+            r.scenario.targets,
+            r.scenario.herders,
+            r.episodes,
+            r.success_rate,
+            r.mean_time_s,
+            r.mean_time_ratio
+        ));
+    }
+    file.write_all(text.as_bytes()).map_err(ReportError::from)?;
+    Ok(())
+}
+
+/// The columns of `eval.csv`.
+pub const EVAL_CSV_HEADER: &str = "env_steps,task_env_steps,task,targets,herders,episodes,success_rate,mean_time_s,mean_time_ratio";
+
 /// Running means over the most recent training episodes.
 struct Recent {
     window: Vec<EpisodeStats>,
@@ -317,6 +356,15 @@ impl Run<'_> {
             self.progress.episodes,
             s,
         ))?;
+        // Per scenario, with the environment steps each trained task has had (the parallel
+        // environments cycle through the tasks, so they share the steps evenly).
+        let per_task = self.progress.env_steps / self.config.training.tasks.len().max(1) as u64;
+        append_eval_rows(
+            &self.dir().join("eval.csv"),
+            self.progress.env_steps,
+            per_task,
+            &rows,
+        )?;
         self.last_eval = rows;
         Ok(())
     }
@@ -576,7 +624,12 @@ fn train_in_pool(
             .wrapping_add(progress.env_steps)
             .wrapping_add(3),
     );
-    let eval_scenarios = config.eval.scenario_list();
+    let eval_scenarios: Vec<EvalScenario> = config
+        .eval
+        .scenario_list()
+        .into_iter()
+        .filter(|s| config.training.tasks.contains(&s.task))
+        .collect();
     // As wide as the actor's input (a resumed actor keeps the width it was made with).
     let width = agent.actor.inputs();
     let mut run = Run {

@@ -14,6 +14,7 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
+use skyherd_model::Task;
 use skyherd_onboard::actor::Actor;
 use skyherd_sim::baseline::{Method, RulePolicy};
 use skyherd_sim::learned::ModelPolicy;
@@ -61,6 +62,19 @@ enum Command {
     /// `--gate`, exit non-zero unless every successful rule beats hovering and the rules rank
     /// by completion time.
     AuditReward(AuditRewardArgs),
+    /// Read an ablation's runs (`<runs>/<arm>-seed<S>/eval.csv`, from `train --arm --seed`)
+    /// and write its table, verdict and learning curves (`skyherd_trainer::ablation`).
+    AblationReport(AblationReportArgs),
+}
+
+#[derive(clap::Args, Debug)]
+struct AblationReportArgs {
+    /// The folder holding the runs (the config's `output_dir`).
+    #[arg(long)]
+    runs: PathBuf,
+    /// Where `ablation.md` and the curves go.
+    #[arg(long, default_value = "docs/learning")]
+    out: PathBuf,
 }
 
 #[derive(clap::Args, Debug)]
@@ -100,6 +114,68 @@ struct TrainArgs {
     /// Continue from `<output_dir>/last.safetensors`.
     #[arg(long)]
     resume: bool,
+    /// Override the config's seed (with `--arm`, one run of an ablation; the output goes to
+    /// `<output_dir>/<arm>-seed<SEED>`).
+    #[arg(long)]
+    seed: Option<u64>,
+    /// Train one arm of the multi-task ablation: `mtddpg` (both tasks through the shared
+    /// layers), or `single-driving` / `single-collecting` (one task, half the env steps: the
+    /// same steps per task as the MTDDPG arm gives each).
+    #[arg(long, value_enum)]
+    arm: Option<Arm>,
+}
+
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+enum Arm {
+    Mtddpg,
+    SingleDriving,
+    SingleCollecting,
+}
+
+impl Arm {
+    fn name(self) -> &'static str {
+        match self {
+            Arm::Mtddpg => "mtddpg",
+            Arm::SingleDriving => "single-driving",
+            Arm::SingleCollecting => "single-collecting",
+        }
+    }
+}
+
+/// The config of one ablation run: `config` with `seed` and `arm` applied.
+fn ablation_config(
+    mut config: TrainConfig,
+    seed: Option<u64>,
+    arm: Option<Arm>,
+) -> Result<TrainConfig> {
+    if seed.is_none() && arm.is_none() {
+        return Ok(config);
+    }
+    if let Some(seed) = seed {
+        config.seed = seed;
+    }
+    let arm = arm.unwrap_or(Arm::Mtddpg);
+    let t = &mut config.training;
+    match arm {
+        Arm::Mtddpg => t.tasks = Task::ALL.to_vec(),
+        Arm::SingleDriving | Arm::SingleCollecting => {
+            let task = if matches!(arm, Arm::SingleDriving) {
+                Task::Driving
+            } else {
+                Task::Collecting
+            };
+            if t.tasks.len() == Task::COUNT {
+                t.env_steps /= Task::COUNT as u64;
+                t.random_warmup_steps /= Task::COUNT as u64;
+            }
+            t.tasks = vec![task];
+        }
+    }
+    config.output_dir = config
+        .output_dir
+        .join(format!("{}-seed{}", arm.name(), config.seed));
+    config.validate().context("the ablation run's config")?;
+    Ok(config)
 }
 
 #[derive(clap::Args, Debug)]
@@ -260,12 +336,23 @@ fn main() -> Result<()> {
         Command::Plot(args) => run_plot(args),
         Command::Eval(args) => run_eval(args),
         Command::AuditReward(args) => run_audit_reward(args),
+        Command::AblationReport(args) => {
+            let text = skyherd_trainer::ablation::report(&args.runs, &args.out)
+                .with_context(|| format!("reading the runs in {}", args.runs.display()))?;
+            print!("{text}");
+            Ok(())
+        }
     }
 }
 
 fn run_train(args: TrainArgs) -> Result<()> {
-    let TrainArgs { config, resume } = args;
-    let config = TrainConfig::load(&config)?;
+    let TrainArgs {
+        config,
+        resume,
+        seed,
+        arm,
+    } = args;
+    let config = ablation_config(TrainConfig::load(&config)?, seed, arm)?;
     let resume_from = if resume {
         let path = config.output_dir.join("last.safetensors");
         let c =
