@@ -332,6 +332,9 @@ impl Default for RewardConfig {
 pub struct EvalConfig {
     /// Evaluate every this many DDPG updates (and after the warm start).
     pub every_updates: u64,
+    /// Instead, when above 0: evaluate every this many environment steps per trained task
+    /// (the ablation's cadence, the same for a one-task and a two-task run).
+    pub every_task_env_steps: u64,
     /// Episodes per evaluation scenario.
     pub episodes: usize,
     /// Episode seeds are `seed_base + k`; far from the training seeds.
@@ -355,6 +358,7 @@ impl Default for EvalConfig {
     fn default() -> Self {
         EvalConfig {
             every_updates: 10_000,
+            every_task_env_steps: 0,
             episodes: 8,
             seed_base: 1_000_000_000,
             scenarios: vec![

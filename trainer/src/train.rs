@@ -480,6 +480,12 @@ impl Run<'_> {
         let mut update_count = 0u64;
         let mut stats = crate::ddpg::UpdateStats::default();
         let mut next_eval = self.agent.updates + config.eval.every_updates;
+        let tasks = config.training.tasks.len().max(1) as u64;
+        let by_steps = config.eval.every_task_env_steps > 0;
+        let task_steps = |env_steps: u64| env_steps / tasks;
+        let mut next_eval_steps =
+            (task_steps(self.progress.env_steps) / config.eval.every_task_env_steps.max(1) + 1)
+                * config.eval.every_task_env_steps;
         let imitation_weight = if config.warm_start.enabled {
             config.warm_start.imitation_weight
         } else {
@@ -561,7 +567,10 @@ impl Run<'_> {
                     eval_time_ratio: f64::NAN,
                 })?;
             }
-            if self.agent.updates >= next_eval {
+            if by_steps && task_steps(self.progress.env_steps) >= next_eval_steps {
+                next_eval_steps += config.eval.every_task_env_steps;
+                self.evaluate(observer)?;
+            } else if !by_steps && self.agent.updates >= next_eval {
                 next_eval = self.agent.updates + config.eval.every_updates;
                 self.evaluate(observer)?;
             }

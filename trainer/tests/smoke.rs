@@ -137,3 +137,69 @@ fn the_same_seed_trains_the_same_actor() {
     assert_eq!(a.critic, b.critic);
     assert!(a.updates > 0);
 }
+
+/// From scratch with every learner option on (TD3, n-step, OU noise, planar, random-waypoint
+/// warm-up, the audited reward), as the two arms of the ablation, then the ablation report.
+#[test]
+fn from_scratch_td3_arms_train_and_the_ablation_reports_them() {
+    let dir = std::env::temp_dir().join(format!("skyherd-ablation-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let base = TrainConfig::from_toml_str(
+        r#"
+        seed = 5
+        [network]
+        hidden = 16
+        [ddpg]
+        gamma = 0.995
+        twin_critics = true
+        target_noise = 0.2
+        n_step = 3
+        exploration = "ornstein_uhlenbeck"
+        planar = true
+        [training]
+        env_steps = 400
+        envs = 2
+        episode_step_limit = 40
+        learning_starts = 50
+        random_warmup_steps = 100
+        wall_clock_limit_s = 60.0
+        [curriculum]
+        stages = [{ from_progress = 0.0, targets = [2, 4], herders = [2] }]
+        [warm_start]
+        enabled = false
+        [reward]
+        kind = "audited"
+        [eval]
+        every_task_env_steps = 100
+        episodes = 1
+        scenarios = [["driving", 4, 2], ["collecting", 4, 2]]
+        [evolution]
+        enabled = false
+        "#,
+    )
+    .expect("from-scratch config");
+    for (arm, tasks, steps) in [
+        ("mtddpg", vec![Task::Driving, Task::Collecting], 400),
+        ("single-driving", vec![Task::Driving], 200),
+    ] {
+        let mut config = base.clone();
+        config.output_dir = dir.join(format!("{arm}-seed5"));
+        config.training.tasks = tasks;
+        config.training.env_steps = steps;
+        let out = train(&config, None, &mut Quiet).expect("from-scratch training runs");
+        assert!(!out.progress.warm_start_done);
+        let csv = std::fs::read_to_string(config.output_dir.join("eval.csv")).expect("eval.csv");
+        // Every 100 steps per task, plus the final evaluation.
+        assert!(csv.lines().count() >= 3, "{csv}");
+        if arm == "single-driving" {
+            assert!(!csv.contains("collecting"), "{csv}");
+        }
+    }
+    let report = skyherd_trainer::ablation::report(&dir, &dir.join("report")).expect("report");
+    assert!(report.contains("| driving | mtddpg | 1 |"), "{report}");
+    assert!(report.contains("| driving | single | 1 |"), "{report}");
+    assert!(report.contains("- driving:"), "{report}");
+    assert!(dir.join("report/curve-driving.png").exists());
+    assert!(dir.join("report/curve-driving.svg").exists());
+    let _ = std::fs::remove_dir_all(&dir);
+}
