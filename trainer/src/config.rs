@@ -23,7 +23,7 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 use skyherd_model::Task;
 use skyherd_sim::baseline::Method;
-use skyherd_sim::task::{parse_task, task_serde};
+use skyherd_sim::task::task_serde;
 use thiserror::Error;
 
 use crate::ddpg::{DdpgConfig, NetworkConfig};
@@ -339,17 +339,50 @@ pub struct EvalConfig {
     pub episodes: usize,
     /// Episode seeds are `seed_base + k`; far from the training seeds.
     pub seed_base: u64,
-    /// `(task, N, M)` triples evaluated, with test-time noise; M = 0 is adaptive.
-    pub scenarios: Vec<(String, usize, usize)>,
+    /// The scenarios evaluated, with test-time noise, written as `[task, N, M]` triples
+    /// (`["driving", 16, 4]`); M = 0 is adaptive.
+    #[serde(with = "eval_triples")]
+    pub scenarios: Vec<EvalScenario>,
 }
 
 impl EvalConfig {
-    /// The evaluated scenarios (triples with an unknown task, which validation rejects, are
-    /// skipped).
+    /// The evaluated scenarios.
     pub fn scenario_list(&self) -> Vec<EvalScenario> {
-        self.scenarios
-            .iter()
-            .filter_map(EvalScenario::from_triple)
+        self.scenarios.clone()
+    }
+}
+
+/// Serde for evaluation scenarios as `[task, N, M]` triples.
+mod eval_triples {
+    use serde::{Deserialize, Deserializer, Serialize, Serializer, de::Error};
+    use skyherd_sim::task::{parse_task, task_name};
+
+    use crate::eval::EvalScenario;
+
+    pub(super) fn serialize<S: Serializer>(list: &[EvalScenario], s: S) -> Result<S::Ok, S::Error> {
+        list.iter()
+            .map(|e| (task_name(e.task), e.targets, e.herders))
+            .collect::<Vec<_>>()
+            .serialize(s)
+    }
+
+    pub(super) fn deserialize<'de, D: Deserializer<'de>>(
+        d: D,
+    ) -> Result<Vec<EvalScenario>, D::Error> {
+        Vec::<(String, usize, usize)>::deserialize(d)?
+            .into_iter()
+            .map(|(task, targets, herders)| {
+                let task = parse_task(&task).ok_or_else(|| {
+                    D::Error::custom(format!(
+                        "unknown task `{task}`, expected `driving` or `collecting`"
+                    ))
+                })?;
+                Ok(EvalScenario {
+                    task,
+                    targets,
+                    herders,
+                })
+            })
             .collect()
     }
 }
@@ -361,13 +394,19 @@ impl Default for EvalConfig {
             every_task_env_steps: 0,
             episodes: 8,
             seed_base: 1_000_000_000,
-            scenarios: vec![
-                ("driving".into(), 16, 4),
-                ("driving".into(), 64, 4),
-                ("driving".into(), 256, 0),
-                ("collecting".into(), 16, 4),
-                ("collecting".into(), 64, 4),
-            ],
+            scenarios: [
+                (Task::Driving, 16, 4),
+                (Task::Driving, 64, 4),
+                (Task::Driving, 256, 0),
+                (Task::Collecting, 16, 4),
+                (Task::Collecting, 64, 4),
+            ]
+            .map(|(task, targets, herders)| EvalScenario {
+                task,
+                targets,
+                herders,
+            })
+            .to_vec(),
         }
     }
 }
@@ -579,11 +618,6 @@ impl TrainConfig {
                     "curriculum.stages",
                     "every stage needs target counts >= 1 and herder counts",
                 );
-            }
-        }
-        for (task, _, _) in &self.eval.scenarios {
-            if parse_task(task).is_none() {
-                return bad("eval.scenarios", "task must be `driving` or `collecting`");
             }
         }
         let ev = &self.evolution;

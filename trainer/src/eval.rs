@@ -6,7 +6,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use skyherd_model::Task;
 use skyherd_sim::env::run_episodes_parallel;
-use skyherd_sim::task::{parse_task, task_name};
+use skyherd_sim::task::task_name;
 use skyherd_sim::{EnvError, EpisodeSummary, HerderCount, Policy, Scenario};
 
 /// One evaluated scenario.
@@ -21,15 +21,6 @@ pub struct EvalScenario {
 }
 
 impl EvalScenario {
-    /// From the config's `(task, N, M)` triple (`None` if the task name is unknown).
-    pub fn from_triple(t: &(String, usize, usize)) -> Option<EvalScenario> {
-        Some(EvalScenario {
-            task: parse_task(&t.0)?,
-            targets: t.1,
-            herders: t.2,
-        })
-    }
-
     /// The paper scenario with test-time noise and the default step limit.
     pub fn scenario(&self) -> Scenario {
         let mut s = Scenario::paper(self.task);

@@ -306,8 +306,16 @@ fn parse_scenario(s: &str) -> Result<EvalScenario> {
     if parts.len() != 3 {
         bail!("scenario `{s}` is not task:N:M");
     }
-    EvalScenario::from_triple(&(parts[0].to_owned(), parts[1].parse()?, parts[2].parse()?))
-        .with_context(|| format!("unknown task in `{s}`"))
+    Ok(EvalScenario {
+        task: skyherd_sim::task::parse_task(parts[0])
+            .with_context(|| format!("unknown task in `{s}` (driving or collecting)"))?,
+        targets: parts[1]
+            .parse()
+            .with_context(|| format!("N in `{s}` is not a count"))?,
+        herders: parts[2]
+            .parse()
+            .with_context(|| format!("M in `{s}` is not a count"))?,
+    })
 }
 
 fn print_evolution(e: &EvolutionOutcome) {
