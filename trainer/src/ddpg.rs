@@ -549,19 +549,10 @@ mod tests {
     use rand::SeedableRng;
     use rand_chacha::ChaCha8Rng;
 
-    /// A one-step bandit per task: reward = -|a - a*_task|^2, episodes end at once. DDPG must
-    /// find each task's best action, which differs between the tasks.
-    #[test]
-    fn learns_a_different_best_action_per_task() {
+    /// A one-step bandit per task: reward = -|a - a*_task|^2, episodes end at once. The agent
+    /// must find each task's best action, which differs between the tasks.
+    fn solves_the_two_task_bandit(config: DdpgConfig, updates: usize) {
         let mut rng = ChaCha8Rng::seed_from_u64(4);
-        let config = DdpgConfig {
-            batch_size: 64,
-            reward_scale: 1.0,
-            actor_learning_rate: 2e-3,
-            critic_learning_rate: 3e-3,
-            policy_frequency: 1,
-            ..DdpgConfig::default()
-        };
         let network = NetworkConfig {
             hidden: 64,
             shared_layers: 1,
@@ -579,7 +570,7 @@ mod tests {
             }
         }
         let mut batches = vec![Batch::default(); 2];
-        for _ in 0..2000 {
+        for _ in 0..updates {
             for (b, buf) in batches.iter_mut().zip(&buffers) {
                 buf.sample(32, &mut rng, b);
             }
@@ -593,6 +584,33 @@ mod tests {
                 .sqrt();
             assert!(err < 0.15, "task {task}: {a:?} vs {target:?}");
         }
+    }
+
+    fn bandit_config() -> DdpgConfig {
+        DdpgConfig {
+            batch_size: 64,
+            reward_scale: 1.0,
+            actor_learning_rate: 2e-3,
+            critic_learning_rate: 3e-3,
+            policy_frequency: 1,
+            ..DdpgConfig::default()
+        }
+    }
+
+    #[test]
+    fn learns_a_different_best_action_per_task() {
+        solves_the_two_task_bandit(bandit_config(), 2000);
+    }
+
+    #[test]
+    fn td3_learns_a_different_best_action_per_task() {
+        let config = DdpgConfig {
+            policy_frequency: 2,
+            twin_critics: true,
+            target_noise: 0.2,
+            ..bandit_config()
+        };
+        solves_the_two_task_bandit(config, 3000);
     }
 
     #[test]
@@ -721,52 +739,6 @@ mod tests {
         for (n, c) in noisy.iter().zip(&clean) {
             // 0.1 of clipped noise on two action components moves Q' only a little.
             assert!((n - c).abs() < 0.1, "{n} vs {c}");
-        }
-    }
-
-    #[test]
-    fn td3_learns_a_different_best_action_per_task() {
-        let mut rng = ChaCha8Rng::seed_from_u64(4);
-        let config = DdpgConfig {
-            batch_size: 64,
-            reward_scale: 1.0,
-            actor_learning_rate: 2e-3,
-            critic_learning_rate: 3e-3,
-            policy_frequency: 2,
-            twin_critics: true,
-            target_noise: 0.2,
-            ..DdpgConfig::default()
-        };
-        let network = NetworkConfig {
-            hidden: 64,
-            shared_layers: 1,
-        };
-        let mut agent = Agent::new(2, 2, network, config, &mut rng);
-        let best = [[0.5_f32, -0.3, 0.0], [-0.6, 0.2, 0.4]];
-        let mut buffers: Vec<ReplayBuffer> =
-            (0..2).map(|_| ReplayBuffer::new(2, 3, 4096)).collect();
-        for (task, buffer) in buffers.iter_mut().enumerate() {
-            for _ in 0..2000 {
-                let obs = [rng.random_range(-1.0..1.0), rng.random_range(-1.0..1.0)];
-                let a: [f32; 3] = std::array::from_fn(|_| rng.random_range(-1.0..1.0));
-                let r = -(0..3).map(|k| (a[k] - best[task][k]).powi(2)).sum::<f32>();
-                buffer.push(&obs, &a, r, &obs, true);
-            }
-        }
-        let mut batches = vec![Batch::default(); 2];
-        for _ in 0..3000 {
-            for (b, buf) in batches.iter_mut().zip(&buffers) {
-                buf.sample(32, &mut rng, b);
-            }
-            agent.update(&batches);
-        }
-        for (task, target) in best.iter().enumerate() {
-            let a = agent.act(task, &[0.1, -0.2]);
-            let err: f32 = (0..3)
-                .map(|k| (a[k] - target[k]).powi(2))
-                .sum::<f32>()
-                .sqrt();
-            assert!(err < 0.15, "task {task}: {a:?} vs {target:?}");
         }
     }
 }
