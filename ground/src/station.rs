@@ -13,11 +13,12 @@
 //!
 //! ```
 //! use skyherd_ground::detections::Scan;
-//! use skyherd_ground::mission::DroneReport;
+//! use skyherd_ground::mission::{DroneReport, MissionPlan};
 //! use skyherd_ground::station::{GroundStation, StationConfig, StationEvent};
 //! use skyherd_onboard::Task;
 //!
-//! let config = StationConfig::new(Task::Driving, [8.0, 8.0], 1.5, [10.0, 10.0, 3.0], 1.0, vec![1]);
+//! let plan = MissionPlan::new(Task::Driving, [8.0, 8.0], 1.5, [10.0, 10.0, 3.0], vec![1]);
+//! let config = StationConfig::new(plan, 1.0);
 //! let mut station = GroundStation::new(config).unwrap();
 //! let drone = [DroneReport { system_id: 1, position: Some([1.0, 1.0, 0.0]), last_heard: 0.0 }];
 //! let scan = Scan { time_s: 0.0, detections: vec![[3.0, 3.0]], complete: true };
@@ -31,7 +32,6 @@ use std::fmt;
 
 use mavlink::dialects::common::MavMessage;
 use serde::Serialize;
-use skyherd_onboard::Task;
 use skyherd_onboard::wire::MissionAction;
 use thiserror::Error;
 
@@ -68,22 +68,10 @@ impl UplinkCut {
 /// What the station is asked to do.
 #[derive(Clone, Debug, PartialEq)]
 pub struct StationConfig {
-    /// The task.
-    pub task: Task,
-    /// Goal centre `[x, y]`, metres.
-    pub goal: [f32; 2],
-    /// Goal radius, metres.
-    pub goal_radius: f32,
-    /// Arena width, depth and ceiling from the origin, metres.
-    pub area: [f32; 3],
+    /// The mission: task, goal, arena (the geofence), drones, expected targets, limits.
+    pub plan: MissionPlan,
     /// Herders' speed limit, m/s.
     pub max_speed: f32,
-    /// The drones' system ids; herder index = position in this list.
-    pub drones: Vec<u8>,
-    /// Targets expected; completion needs at least this many tracks.
-    pub expected_targets: usize,
-    /// Abort when not complete this long after the start, seconds.
-    pub time_limit_s: f64,
     /// System id of the tracking sensor.
     pub sensor_system_id: u8,
     /// Tracker measurement noise (standard deviation), metres.
@@ -95,30 +83,22 @@ pub struct StationConfig {
 }
 
 impl StationConfig {
-    /// A configuration with the defaults of `skyherd-ground mission`: no expected target
-    /// count, 600 s time limit, sensor system id 200, 0.1 m measurement noise, 0.1 s scans.
-    pub fn new(
-        task: Task,
-        goal: [f32; 2],
-        goal_radius: f32,
-        area: [f32; 3],
-        max_speed: f32,
-        drones: Vec<u8>,
-    ) -> Self {
+    /// A configuration for `plan` with the defaults of `skyherd-ground mission`: sensor
+    /// system id 200, 0.1 m measurement noise, 0.1 s scans, no fault.
+    pub fn new(plan: MissionPlan, max_speed: f32) -> Self {
         Self {
-            task,
-            goal,
-            goal_radius,
-            area,
+            plan,
             max_speed,
-            drones,
-            expected_targets: 0,
-            time_limit_s: 600.0,
             sensor_system_id: 200,
             measurement_std: 0.1,
             scan_period_s: 0.1,
             uplink_cut: None,
         }
+    }
+
+    /// The drones' system ids, in herder order.
+    pub fn drones(&self) -> &[u8] {
+        &self.plan.drones
     }
 }
 
@@ -329,26 +309,17 @@ impl GroundStation {
     /// # Errors
     /// [`StationError::Tracker`] when the tracker cannot be configured for this world.
     pub fn new(config: StationConfig) -> Result<Self, StationError> {
-        let mut plan = MissionPlan::new(
-            config.task,
-            config.goal,
-            config.goal_radius,
-            config.area,
-            config.drones.clone(),
-        );
-        plan.expected_targets = config.expected_targets;
-        plan.time_limit_s = config.time_limit_s;
         // The tracker's defaults are for the paper's arena (45 m goal, 5 m/s herders); a
         // smaller world scales them (see `TrackerConfig::scaled`).
         let tracker = Tracker::new(TrackerConfig::scaled(TrackedWorld {
-            goal_radius: f64::from(config.goal_radius),
+            goal_radius: f64::from(config.plan.goal_radius),
             max_speed: f64::from(config.max_speed),
             measurement_std: config.measurement_std,
             scan_period_s: config.scan_period_s,
         }))?;
         Ok(Self {
-            herders: vec![[0.0; 3]; config.drones.len()],
-            mission: MissionControl::new(plan),
+            herders: vec![[0.0; 3]; config.plan.drones.len()],
+            mission: MissionControl::new(config.plan.clone()),
             tracker,
             uplink: UplinkEncoder::new(),
             assembler: ScanAssembler::default(),
@@ -421,7 +392,8 @@ impl GroundStation {
             }
         }
 
-        let (task, goal, radius) = (self.config.task, self.config.goal, self.config.goal_radius);
+        let plan = &self.config.plan;
+        let (task, goal, radius) = (plan.task, plan.goal, plan.goal_radius);
         match self.mission.update(now, drones, &targets) {
             Some(MissionStep::Start) => {
                 events.push(StationEvent::Started { at: now });
@@ -458,7 +430,7 @@ impl GroundStation {
                 self.command_frames = repeat?;
             }
             if !self.command_frames.is_empty() {
-                for &id in &self.config.drones {
+                for &id in &self.config.plan.drones {
                     uplink.push((id, self.command_frames.clone()));
                 }
                 self.last_command_at = now;
@@ -471,11 +443,11 @@ impl GroundStation {
                 targets: &targets,
                 goal,
                 goal_radius: radius,
-                area: self.config.area,
+                area: self.config.plan.area,
                 max_speed: self.config.max_speed,
                 timestamp_ms: (now * 1000.0).round() as u64,
             };
-            for &id in &self.config.drones {
+            for &id in &self.config.plan.drones {
                 uplink.push((id, self.uplink.snapshot(&inputs, id)?));
             }
         }
@@ -534,15 +506,16 @@ pub fn drone_reports(fleet: &Fleet, drones: &[u8]) -> Vec<DroneReport> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use skyherd_onboard::Task;
     use skyherd_onboard::wire::{Reassembler, Uplink, decode_uplink};
 
     const GOAL: [f32; 2] = [8.0, 8.0];
 
     fn station(drones: Vec<u8>) -> GroundStation {
-        let mut config =
-            StationConfig::new(Task::Driving, GOAL, 1.5, [10.0, 10.0, 3.0], 1.0, drones);
-        config.expected_targets = 2;
-        config.time_limit_s = 60.0;
+        let mut plan = MissionPlan::new(Task::Driving, GOAL, 1.5, [10.0, 10.0, 3.0], drones);
+        plan.expected_targets = 2;
+        plan.time_limit_s = 60.0;
+        let mut config = StationConfig::new(plan, 1.0);
         config.measurement_std = 0.05;
         GroundStation::new(config).unwrap()
     }
@@ -761,8 +734,8 @@ mod tests {
 
     #[test]
     fn an_uplink_cut_sends_nothing_up_and_is_reported_once_each_way() {
-        let mut config =
-            StationConfig::new(Task::Driving, GOAL, 1.5, [10.0, 10.0, 3.0], 1.0, vec![1]);
+        let plan = MissionPlan::new(Task::Driving, GOAL, 1.5, [10.0, 10.0, 3.0], vec![1]);
+        let mut config = StationConfig::new(plan, 1.0);
         config.uplink_cut = Some(UplinkCut {
             start_s: 1.0,
             duration_s: 0.5,

@@ -23,6 +23,7 @@ use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand, ValueEnum};
 use mavlink::dialects::common::MavMessage;
 use skyherd_ground::fleet::{GroundLink, LinkConfig};
+use skyherd_ground::mission::MissionPlan;
 use skyherd_ground::station::{GroundStation, ScanRow, StationConfig, UplinkCut, drone_reports};
 use skyherd_link::{Signing, SigningKey};
 use skyherd_onboard::Task;
@@ -139,11 +140,11 @@ fn parse_drone(text: &str) -> Result<(u8, String)> {
 fn main() -> Result<()> {
     let Command::Mission(args) = Cli::parse().command;
     let mut station = GroundStation::new(args.station_config()?)?;
-    let mut links = Links::open(&args, &station.config().drones)?;
+    let mut links = Links::open(&args, station.config().drones())?;
     let c = station.config();
     say(format!(
         "mission {:?} to goal ({:.1}, {:.1}) r={:.2} m with drones {:?}",
-        c.task, c.goal[0], c.goal[1], c.goal_radius, c.drones
+        c.plan.task, c.plan.goal[0], c.plan.goal[1], c.plan.goal_radius, c.plan.drones
     ));
     let sensor_silent = links.fly(&mut station, &args)?;
     links.fleet.flush_log()?;
@@ -228,7 +229,7 @@ impl Links {
             };
             last_scan_wall = Instant::now();
             now = scan.time_s;
-            let drones = drone_reports(self.fleet.fleet(), &station.config().drones);
+            let drones = drone_reports(self.fleet.fleet(), station.config().drones());
             let reply = station.on_scan(&scan, &drones)?;
             reply.events.iter().for_each(|e| say(e.to_string()));
             for (id, frames) in &reply.uplink {
@@ -296,10 +297,10 @@ impl MissionArgs {
             .into_iter()
             .map(|(id, _)| id)
             .collect();
-        let mut config =
-            StationConfig::new(task, goal, self.goal_radius, area, self.max_speed, drones);
-        config.expected_targets = self.targets;
-        config.time_limit_s = self.time_limit;
+        let mut plan = MissionPlan::new(task, goal, self.goal_radius, area, drones);
+        plan.expected_targets = self.targets;
+        plan.time_limit_s = self.time_limit;
+        let mut config = StationConfig::new(plan, self.max_speed);
         config.sensor_system_id = self.sensor_system_id;
         config.measurement_std = self.measurement_std;
         config.scan_period_s = self.scan_period;
