@@ -174,42 +174,49 @@ pub struct ArmSummary {
     pub final_success: Vec<f64>,
 }
 
-/// Summaries of every arm and task up to `horizon` task steps (the smallest common last
-/// evaluation when `None`).
-pub fn summarize(curves: &[ArmCurves], horizon: Option<u64>) -> (u64, Vec<ArmSummary>) {
-    let horizon = horizon.unwrap_or_else(|| {
-        curves
-            .iter()
-            .flat_map(|a| a.runs.iter())
-            .filter_map(|(_, c)| c.last().map(|p| p.task_env_steps))
-            .min()
-            .unwrap_or(0)
-    });
-    let summaries = curves
-        .iter()
-        .map(|a| ArmSummary {
-            arm: a.arm.clone(),
-            task: a.task,
-            seeds: a.runs.len(),
-            steps_to_target: a
-                .runs
+/// Summaries of every arm and task, each task up to its horizon: `horizon` task steps, or
+/// when `None` the last evaluation that every run of that task reached (so an unfinished run
+/// shortens the comparison instead of skewing it).
+pub fn summarize(curves: &[ArmCurves], horizon: Option<u64>) -> Vec<(u64, ArmSummary)> {
+    let task_horizon = |task: Task| {
+        horizon.unwrap_or_else(|| {
+            curves
                 .iter()
-                .map(|(_, c)| steps_to(c, TARGET_SUCCESS))
-                .collect(),
-            auc: a.runs.iter().map(|(_, c)| area_under(c, horizon)).collect(),
-            final_success: a
-                .runs
-                .iter()
-                .map(|(_, c)| {
-                    c.iter()
-                        .rev()
-                        .find(|p| p.task_env_steps <= horizon)
-                        .map_or(0.0, |p| p.success)
-                })
-                .collect(),
+                .filter(|a| a.task == task)
+                .flat_map(|a| a.runs.iter())
+                .filter_map(|(_, c)| c.last().map(|p| p.task_env_steps))
+                .min()
+                .unwrap_or(0)
         })
-        .collect();
-    (horizon, summaries)
+    };
+    curves
+        .iter()
+        .map(|a| {
+            let horizon = task_horizon(a.task);
+            let summary = ArmSummary {
+                arm: a.arm.clone(),
+                task: a.task,
+                seeds: a.runs.len(),
+                steps_to_target: a
+                    .runs
+                    .iter()
+                    .map(|(_, c)| steps_to(c, TARGET_SUCCESS).filter(|&steps| steps <= horizon))
+                    .collect(),
+                auc: a.runs.iter().map(|(_, c)| area_under(c, horizon)).collect(),
+                final_success: a
+                    .runs
+                    .iter()
+                    .map(|(_, c)| {
+                        c.iter()
+                            .rev()
+                            .find(|p| p.task_env_steps <= horizon)
+                            .map_or(0.0, |p| p.success)
+                    })
+                    .collect(),
+            };
+            (horizon, summary)
+        })
+        .collect()
 }
 
 fn mean(v: &[f64]) -> f64 {
@@ -223,6 +230,12 @@ fn mean(v: &[f64]) -> f64 {
 /// The verdict for one task: does sharing the hidden layers learn faster here?
 pub fn verdict(multi: &ArmSummary, single: &ArmSummary) -> String {
     let (m, s) = (mean(&multi.auc), mean(&single.auc));
+    if multi.seeds < 2 || single.seeds < 2 {
+        return format!(
+            "{}: AUC {m:.3} MTDDPG vs {s:.3} single-task from one seed per arm: no verdict (seeds decide, and one is not enough)",
+            task_name(multi.task)
+        );
+    }
     let (m_lo, m_hi) = min_max(&multi.auc);
     let (s_lo, s_hi) = min_max(&single.auc);
     let task = task_name(multi.task);
@@ -249,12 +262,12 @@ fn min_max(v: &[f64]) -> (f64, f64) {
 }
 
 /// The report as Markdown: the table and the verdicts.
-pub fn markdown(horizon: u64, summaries: &[ArmSummary]) -> String {
+pub fn markdown(summaries: &[(u64, ArmSummary)]) -> String {
     let mut out = format!(
-        "Up to {horizon} environment steps per task; success is the mean over the task's held-out scenarios.\n\n| task | arm | seeds | steps to {:.0} % (per seed) | AUC mean (min-max) | final success mean |\n|---|---|---|---|---|---|\n",
+        "Success is the mean held-out success over the task's scenarios; each task is compared up to the last evaluation every one of its runs reached.\n\n| task | up to (task steps) | arm | seeds | steps to {:.0} % (per seed) | AUC mean (min-max) | final success mean |\n|---|---|---|---|---|---|---|\n",
         100.0 * TARGET_SUCCESS
     );
-    for s in summaries {
+    for (horizon, s) in summaries {
         let steps: Vec<String> = s
             .steps_to_target
             .iter()
@@ -263,7 +276,7 @@ pub fn markdown(horizon: u64, summaries: &[ArmSummary]) -> String {
         let (lo, hi) = min_max(&s.auc);
         let _ = writeln!(
             out,
-            "| {} | {} | {} | {} | {:.3} ({lo:.3}-{hi:.3}) | {:.0} % |",
+            "| {} | {horizon} | {} | {} | {} | {:.3} ({lo:.3}-{hi:.3}) | {:.0} % |",
             task_name(s.task),
             s.arm,
             s.seeds,
@@ -274,7 +287,12 @@ pub fn markdown(horizon: u64, summaries: &[ArmSummary]) -> String {
     }
     out.push('\n');
     for task in Task::ALL {
-        let find = |arm: &str| summaries.iter().find(|s| s.task == task && s.arm == arm);
+        let find = |arm: &str| {
+            summaries
+                .iter()
+                .map(|(_, s)| s)
+                .find(|s| s.task == task && s.arm == arm)
+        };
         if let (Some(m), Some(s)) = (find("mtddpg"), find("single")) {
             let _ = writeln!(out, "- {}", verdict(m, s));
         }
@@ -380,8 +398,8 @@ fn draw<DB: DrawingBackend>(
 pub fn report(runs: &Path, out: &Path) -> Result<String, ReportError> {
     let curves = read_runs(runs)?;
     std::fs::create_dir_all(out)?;
-    let (horizon, summaries) = summarize(&curves, None);
-    let text = markdown(horizon, &summaries);
+    let summaries = summarize(&curves, None);
+    let text = markdown(&summaries);
     std::fs::write(out.join("ablation.md"), &text)?;
     for task in Task::ALL {
         if curves.iter().any(|a| a.task == task) {
@@ -453,6 +471,10 @@ mod tests {
             auc,
         };
         let m = summary("mtddpg", vec![0.6, 0.7, 0.65]);
+        assert!(
+            verdict(&summary("mtddpg", vec![0.9]), &summary("single", vec![0.1]))
+                .contains("no verdict")
+        );
         assert!(verdict(&m, &summary("single", vec![0.3, 0.4, 0.5])).contains("claim holds"));
         assert!(verdict(&m, &summary("single", vec![0.8, 0.9, 0.85])).contains("does not hold"));
         assert!(verdict(&m, &summary("single", vec![0.5, 0.66, 0.8])).contains("not shown"));

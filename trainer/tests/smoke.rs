@@ -196,9 +196,18 @@ fn from_scratch_td3_arms_train_and_the_ablation_reports_them() {
         }
     }
     let report = skyherd_trainer::ablation::report(&dir, &dir.join("report")).expect("report");
-    assert!(report.contains("| driving | mtddpg | 1 |"), "{report}");
-    assert!(report.contains("| driving | single | 1 |"), "{report}");
-    assert!(report.contains("- driving:"), "{report}");
+    assert!(
+        report.contains("| driving | 200 | mtddpg | 1 |"),
+        "{report}"
+    );
+    assert!(
+        report.contains("| driving | 200 | single | 1 |"),
+        "{report}"
+    );
+    assert!(
+        report.contains("- driving:") && report.contains("no verdict"),
+        "{report}"
+    );
     assert!(dir.join("report/curve-driving.png").exists());
     assert!(dir.join("report/curve-driving.svg").exists());
     let _ = std::fs::remove_dir_all(&dir);
