@@ -17,7 +17,7 @@
 //! * `all`: the three together (`all-extrap` with the extrapolation).
 //!
 //! ```sh
-//! cargo run --release -p skyherd-sim --example loop_costs -- models/mtddpg-v1.skym 64
+//! cargo run --release -p skyherd-sitl --example loop_costs -- models/mtddpg-v1.skym 64
 //! ```
 
 use skyherd_ground::tracking::{TrackedWorld, Tracker, TrackerConfig};
