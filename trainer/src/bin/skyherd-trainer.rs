@@ -119,8 +119,9 @@ struct TrainArgs {
     #[arg(long)]
     seed: Option<u64>,
     /// Train one arm of the multi-task ablation: `mtddpg` (both tasks through the shared
-    /// layers), or `single-driving` / `single-collecting` (one task, half the env steps: the
-    /// same steps per task as the MTDDPG arm gives each).
+    /// layers), or `single-driving` / `single-collecting` (one task, half the env steps and
+    /// twice the updates per step: the same env steps and gradient steps per task as the
+    /// MTDDPG arm gives each).
     #[arg(long, value_enum)]
     arm: Option<Arm>,
 }
@@ -165,8 +166,13 @@ fn ablation_config(
                 Task::Collecting
             };
             if t.tasks.len() == Task::COUNT {
+                // The same env steps per task as the MTDDPG arm gives each, and the same
+                // gradient steps per task: an MTDDPG update carries a batch of every task,
+                // a single-task update one task's, so the single arm updates twice as often.
                 t.env_steps /= Task::COUNT as u64;
                 t.random_warmup_steps /= Task::COUNT as u64;
+                t.learning_starts /= Task::COUNT as u64;
+                t.updates_per_env_step *= Task::COUNT as f64;
             }
             t.tasks = vec![task];
         }
