@@ -326,6 +326,7 @@ fn draw<DB: DrawingBackend>(
     task: Task,
     root: DrawingArea<DB, plotters::coord::Shift>,
 ) -> Result<(), ReportError> {
+    crate::report::register_font();
     let err = |e: &dyn std::fmt::Display| ReportError::Plot(e.to_string());
     root.fill(&WHITE).map_err(|e| err(&e))?;
     let x_max = curves
@@ -342,7 +343,7 @@ fn draw<DB: DrawingBackend>(
                 "{}: held-out success vs env steps of the task (MTDDPG blue, single-task red)",
                 task_name(task)
             ),
-            ("sans-serif", 16),
+            (crate::report::FAMILY, 16),
         )
         .x_label_area_size(35)
         .y_label_area_size(45)

@@ -153,9 +153,9 @@ pub fn read_log(path: &Path) -> Result<Vec<LogRow>, ReportError> {
 }
 
 const FONT: &[u8] = include_bytes!("../../sim-harness/assets/DejaVuSans.ttf");
-const FAMILY: &str = "sans-serif";
+pub(crate) const FAMILY: &str = "sans-serif";
 
-fn register_font() {
+pub(crate) fn register_font() {
     static ONCE: std::sync::Once = std::sync::Once::new();
     ONCE.call_once(|| {
         // A failure only loses the labels; the font is known to parse.
