@@ -386,7 +386,7 @@ fn run_train(args: TrainArgs) -> Result<()> {
         b.finish();
     }
     println!(
-        "done: {} env steps, {} episodes, {:.0} s this session ({:.0} s total), {:.2} ms per update",
+        "done: {} env steps, {} episodes, {:.0} s in this process ({:.0} s with any earlier resumed part), {:.2} ms per update",
         outcome.progress.env_steps,
         outcome.progress.episodes,
         started.elapsed().as_secs_f64(),
