@@ -21,7 +21,7 @@
 //!
 //! let mut config = TrainConfig::default();
 //! config.training.episode_step_limit = 40;
-//! let rows = audit(&config, &[Draw::paper(Task::Driving, 2, 1)], &[Candidate::Hover], 1, 7);
+//! let rows = audit(&config, &[Draw::paper(Task::Driving, 2, 1)], &[Candidate::Hover], 1, 7).unwrap();
 //! assert_eq!(rows.len(), 1);
 //! assert!(rows[0].mean_return < 0.0);
 //! assert!(gate(&rows).passed); // nothing to compare hovering with
@@ -33,7 +33,7 @@ use rayon::prelude::*;
 use skyherd_sim::baseline::{Method, RulePolicy};
 use skyherd_sim::learned::ModelPolicy;
 use skyherd_sim::policy::act_all;
-use skyherd_sim::{Env, Policy, PolicyFactory, World};
+use skyherd_sim::{Env, Policy, PolicyFactory, ScenarioError, World};
 
 use crate::config::TrainConfig;
 use crate::reward::LearnerReward;
@@ -121,7 +121,7 @@ fn episode(config: &TrainConfig, draw: Draw, candidate: &Candidate, seed: u64) -
         gamma,
     );
     let mut reward = LearnerReward::new(&config.reward, gamma, &scenario);
-    let mut env = Env::new(scenario).expect("training scenarios are valid");
+    let mut env = Env::new(scenario).expect("audit validated every scenario");
     let mut policy = candidate.policy();
     env.reset(seed);
     policy.reset(env.observation(), seed);
@@ -142,13 +142,22 @@ fn episode(config: &TrainConfig, draw: Draw, candidate: &Candidate, seed: u64) -
 
 /// Fly every candidate in every scenario for `episodes` episodes with seeds `seed_base + k`
 /// (the same seeds for every candidate), in parallel on the current rayon pool.
+///
+/// # Errors
+/// [`ScenarioError`] naming the field when a scenario cannot be flown (no targets, say);
+/// nothing is flown then.
 pub fn audit(
     config: &TrainConfig,
     draws: &[Draw],
     candidates: &[Candidate],
     episodes: usize,
     seed_base: u64,
-) -> Vec<AuditRow> {
+) -> Result<Vec<AuditRow>, ScenarioError> {
+    let gamma = f64::from(config.ddpg.gamma);
+    for draw in draws {
+        let step_limit = config.training.episode_step_limit;
+        training_scenario(*draw, step_limit, true, &config.reward, gamma).validate()?;
+    }
     let jobs: Vec<(usize, usize, u64)> = (0..draws.len())
         .flat_map(|d| {
             (0..candidates.len())
@@ -188,7 +197,7 @@ pub fn audit(
             });
         }
     }
-    rows
+    Ok(rows)
 }
 
 /// The gate's verdict.
@@ -339,8 +348,11 @@ mod tests {
         config.training.episode_step_limit = 60;
         let draws = [Draw::paper(Task::Driving, 3, 2)];
         let candidates = [Candidate::Hover, Candidate::Rule(Method::Lama)];
-        let a = audit(&config, &draws, &candidates, 2, 11);
-        let b = audit(&config, &draws, &candidates, 2, 11);
+        let a = audit(&config, &draws, &candidates, 2, 11).unwrap();
+        let b = audit(&config, &draws, &candidates, 2, 11).unwrap();
+        let empty = [Draw::paper(Task::Driving, 0, 2)];
+        let e = audit(&config, &empty, &candidates, 1, 11).unwrap_err();
+        assert!(e.to_string().contains("targets"), "{e}");
         assert_eq!(a, b);
         assert_eq!(a.len(), 2);
         assert!(a.iter().all(|r| r.episodes == 2));

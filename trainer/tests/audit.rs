@@ -31,7 +31,8 @@ fn under_the_shipped_reward_hovering_beats_the_rules() {
         &Candidate::hover_and_rules(),
         4,
         3_600_000_000,
-    );
+    )
+    .expect("the small set is valid");
     let report = gate(&rows);
     assert!(!report.passed);
     assert!(
@@ -52,7 +53,8 @@ fn the_from_scratch_config_passes_the_audit() {
         &Candidate::hover_and_rules(),
         4,
         3_600_000_000,
-    );
+    )
+    .expect("the small set is valid");
     let report = gate(&rows);
     assert!(report.passed, "{:?}", report.problems);
     // Something succeeds in every scenario, so the gate had something to judge.

@@ -625,7 +625,9 @@ fn run_audit_reward(args: AuditRewardArgs) -> Result<()> {
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(args.threads)
         .build()?;
-    let rows = pool.install(|| audit(&config, &draws, &candidates, args.episodes, args.seed_base));
+    let rows = pool
+        .install(|| audit(&config, &draws, &candidates, args.episodes, args.seed_base))
+        .context("an audited scenario")?;
     println!(
         "reward `{:?}`, gamma {}, step limit {}, {} episodes each, seeds from {}",
         config.reward.kind,
