@@ -457,6 +457,7 @@ mod tests {
             rewards: vec![-1.0, 2.0],
             next_obs: vec![0.0; 10],
             continues: vec![1.0, 0.0],
+            ..Batch::default()
         };
         for _ in 0..3 {
             agent.update(&[batch.clone(), batch.clone()]);

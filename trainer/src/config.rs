@@ -193,6 +193,45 @@ pub struct CurriculumConfig {
     pub enabled: bool,
     /// Stages in increasing `from_progress`.
     pub stages: Vec<CurriculumStage>,
+    /// Driving episodes whose goal is pulled towards the flock early in training (a reverse
+    /// curriculum); off unless configured.
+    pub driving_goal_distance: GoalDistanceCurriculum,
+}
+
+/// A reverse curriculum for driving: early driving episodes keep only a share of the paper
+/// layout's start-goal distance, so that the learner meets successes (and so the value of
+/// finishing sooner) before it meets the long drives. Each driving episode draws its share
+/// uniformly from `[floor, 1]`, the floor rising linearly from `first_share` at progress 0 to 1
+/// at `full_at_progress`; from then on every episode is the paper's. The goal moves along the
+/// line from the flock's centroid, so it stays inside the arena. Evaluation never uses it.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct GoalDistanceCurriculum {
+    /// The smallest share of the start-goal distance, at progress 0 (1: off).
+    pub first_share: f64,
+    /// The progress (fraction of `training.env_steps`) from which every driving episode has the
+    /// full distance.
+    pub full_at_progress: f64,
+}
+
+impl Default for GoalDistanceCurriculum {
+    fn default() -> Self {
+        Self {
+            first_share: 1.0,
+            full_at_progress: 0.0,
+        }
+    }
+}
+
+impl GoalDistanceCurriculum {
+    /// The smallest share drawn at `progress`.
+    pub fn floor_at(&self, progress: f64) -> f64 {
+        let first = self.first_share.clamp(0.0, 1.0);
+        if self.full_at_progress <= 0.0 || progress >= self.full_at_progress {
+            return 1.0;
+        }
+        first + (1.0 - first) * (progress / self.full_at_progress).clamp(0.0, 1.0)
+    }
 }
 
 impl Default for CurriculumConfig {
@@ -204,6 +243,7 @@ impl Default for CurriculumConfig {
         };
         CurriculumConfig {
             enabled: true,
+            driving_goal_distance: GoalDistanceCurriculum::default(),
             stages: vec![
                 stage(0.0, &[2, 4, 8, 16], &[1, 2, 4]),
                 stage(0.25, &[4, 8, 16, 32, 64], &[1, 2, 4, 8, 0]),
@@ -619,6 +659,25 @@ impl TrainConfig {
                     "every stage needs target counts >= 1 and herder counts",
                 );
             }
+        }
+        if self.ddpg.centralised_critic && self.ddpg.critic_max_others == 0 {
+            return bad(
+                "ddpg.critic_max_others",
+                "must be >= 1 with a centralised critic",
+            );
+        }
+        let g = &self.curriculum.driving_goal_distance;
+        if !(g.first_share > 0.0 && g.first_share <= 1.0) {
+            return bad(
+                "curriculum.driving_goal_distance.first_share",
+                "must be in (0, 1]",
+            );
+        }
+        if !(g.full_at_progress >= 0.0 && g.full_at_progress <= 1.0) {
+            return bad(
+                "curriculum.driving_goal_distance.full_at_progress",
+                "must be in [0, 1]",
+            );
         }
         let ev = &self.evolution;
         if ev

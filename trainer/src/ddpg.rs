@@ -87,6 +87,13 @@ pub struct DdpgConfig {
     /// Planar herding: the vertical action is held at zero (the drones keep the altitude they
     /// start at), in exploration, in the stored actions and in the TD target.
     pub planar: bool,
+    /// A centralised critic for training: `Q(o_h, a_h, pool_j o_j, pool_j a_j)` sees, beside
+    /// the herder's own features and action, the mean features and mean action of the other
+    /// herders ([`crate::replay::pool_others`]); in the TD target the others' next actions come
+    /// from the target actor. The actor stays decentralised: it flies on its own features.
+    pub centralised_critic: bool,
+    /// The centralised critic pools at most this many other herders (the nearest).
+    pub critic_max_others: usize,
 }
 
 /// How exploration noise is drawn.
@@ -118,6 +125,8 @@ impl Default for DdpgConfig {
             target_noise_clip: 0.5,
             n_step: 1,
             planar: false,
+            centralised_critic: false,
+            critic_max_others: 7,
         }
     }
 }
@@ -191,11 +200,31 @@ impl TwinCritic {
 const NOISE_SEED: u64 = 0x7D3_5EED;
 
 /// Row-wise `[obs | action]`.
+#[cfg(test)]
 fn concat_rows(obs: &[f32], obs_dim: usize, actions: &[f32], rows: usize) -> Vec<f32> {
-    let mut out = Vec::with_capacity(rows * (obs_dim + ACTION_DIM));
+    critic_rows(obs, obs_dim, actions, &[], 0, rows)
+}
+
+/// Row-wise critic input `[obs | action | context]` (`context_dim` 0: no context; a context
+/// shorter than `rows * context_dim`, as in a batch from a plain buffer, reads as zeros).
+fn critic_rows(
+    obs: &[f32],
+    obs_dim: usize,
+    actions: &[f32],
+    context: &[f32],
+    context_dim: usize,
+    rows: usize,
+) -> Vec<f32> {
+    let mut out = Vec::with_capacity(rows * (obs_dim + ACTION_DIM + context_dim));
+    let has_context = context.len() >= rows * context_dim;
     for r in 0..rows {
         out.extend_from_slice(&obs[r * obs_dim..(r + 1) * obs_dim]);
         out.extend_from_slice(&actions[r * ACTION_DIM..(r + 1) * ACTION_DIM]);
+        if has_context {
+            out.extend_from_slice(&context[r * context_dim..(r + 1) * context_dim]);
+        } else {
+            out.extend(std::iter::repeat_n(0.0, context_dim));
+        }
     }
     out
 }
@@ -220,9 +249,14 @@ impl Agent {
             },
             rng,
         );
+        let context = if config.centralised_critic {
+            obs_dim + ACTION_DIM
+        } else {
+            0
+        };
         let critic_shape = MlpShape {
             tasks,
-            inputs: obs_dim + ACTION_DIM,
+            inputs: obs_dim + ACTION_DIM + context,
             hidden: network.hidden,
             shared_layers: network.shared_layers,
             outputs: 1,
@@ -281,6 +315,74 @@ impl Agent {
         self.actor.inputs()
     }
 
+    /// Width of the centralised critic's pooled context (0: the critic sees one herder).
+    pub fn context_dim(&self) -> usize {
+        self.critic
+            .inputs()
+            .saturating_sub(self.obs_dim() + ACTION_DIM)
+    }
+
+    /// The target actor's action for `rows` observations of `task`: smoothed by TD3's clipped
+    /// noise when configured, its vertical part zero when planar.
+    fn target_actions(&mut self, task: usize, obs: &[f32], rows: usize) -> Vec<f32> {
+        let c = self.config;
+        let mut tape = Tape::default();
+        self.target_actor.forward(task, obs, rows, &mut tape);
+        let mut actions = tape.output().to_vec();
+        if c.target_noise > 0.0
+            && let Ok(noise) = Normal::new(0.0_f32, c.target_noise)
+        {
+            for a in &mut actions {
+                let n = noise
+                    .sample(&mut self.noise_rng)
+                    .clamp(-c.target_noise_clip, c.target_noise_clip);
+                *a = (*a + n).clamp(-1.0, 1.0);
+            }
+        }
+        if c.planar {
+            actions
+                .chunks_exact_mut(ACTION_DIM)
+                .for_each(|a| a[2] = 0.0);
+        }
+        actions
+    }
+
+    /// The centralised critic's context at `s'`: per transition, the other herders' next
+    /// observations and the target actor's actions for them, pooled.
+    fn next_context(&mut self, task: usize, b: &Batch) -> Vec<f32> {
+        let obs_dim = self.obs_dim();
+        let width = obs_dim + ACTION_DIM;
+        let mut out = vec![0.0; b.size * width];
+        if b.max_others == 0 || b.next_others_count.len() < b.size {
+            return out;
+        }
+        // One forward over every real row of every transition.
+        let mut rows = Vec::new();
+        let stride = b.max_others * obs_dim;
+        for r in 0..b.size {
+            let k = usize::from(b.next_others_count[r]);
+            rows.extend_from_slice(&b.next_others[r * stride..r * stride + k * obs_dim]);
+        }
+        let total = rows.len() / obs_dim.max(1);
+        if total == 0 {
+            return out;
+        }
+        let actions = self.target_actions(task, &rows, total);
+        let mut at = 0;
+        for r in 0..b.size {
+            let k = usize::from(b.next_others_count[r]);
+            let pooled = crate::replay::pool_others(
+                &rows[at * obs_dim..(at + k) * obs_dim],
+                &actions[at * ACTION_DIM..(at + k) * ACTION_DIM],
+                obs_dim,
+                ACTION_DIM,
+            );
+            out[r * width..(r + 1) * width].copy_from_slice(&pooled);
+            at += k;
+        }
+        out
+    }
+
     /// One MTDDPG update from one batch per task (`batches[t]` feeds task `t`; empty ones are
     /// skipped).
     pub fn update(&mut self, batches: &[Batch]) -> UpdateStats {
@@ -336,26 +438,22 @@ impl Agent {
     pub fn td_targets(&mut self, task: usize, b: &Batch) -> Vec<f32> {
         let c = self.config;
         let obs_dim = self.obs_dim();
+        let context_dim = self.context_dim();
+        let next_actions = self.target_actions(task, &b.next_obs, b.size);
+        let next_context = if context_dim > 0 {
+            self.next_context(task, b)
+        } else {
+            Vec::new()
+        };
+        let next_input = critic_rows(
+            &b.next_obs,
+            obs_dim,
+            &next_actions,
+            &next_context,
+            context_dim,
+            b.size,
+        );
         let mut tape = Tape::default();
-        self.target_actor
-            .forward(task, &b.next_obs, b.size, &mut tape);
-        let mut next_actions = tape.output().to_vec();
-        if c.target_noise > 0.0
-            && let Ok(noise) = Normal::new(0.0_f32, c.target_noise)
-        {
-            for a in &mut next_actions {
-                let n = noise
-                    .sample(&mut self.noise_rng)
-                    .clamp(-c.target_noise_clip, c.target_noise_clip);
-                *a = (*a + n).clamp(-1.0, 1.0);
-            }
-        }
-        if c.planar {
-            next_actions
-                .chunks_exact_mut(ACTION_DIM)
-                .for_each(|a| a[2] = 0.0);
-        }
-        let next_input = concat_rows(&b.next_obs, obs_dim, &next_actions, b.size);
         self.target_critic
             .forward(task, &next_input, b.size, &mut tape);
         let mut next_q = tape.output().to_vec();
@@ -385,9 +483,10 @@ impl Agent {
         let mut critic_grads = self.critic.zeros_like();
         let mut twin_grads = self.twin.as_ref().map(|t| t.critic.zeros_like());
         let mut tape = Tape::default();
+        let context_dim = self.context_dim();
         for (task, b) in batches.iter().enumerate().filter(|(_, b)| b.size > 0) {
             let targets = self.td_targets(task, b);
-            let input = concat_rows(&b.obs, obs_dim, &b.actions, b.size);
+            let input = critic_rows(&b.obs, obs_dim, &b.actions, &b.context, context_dim, b.size);
             self.critic.forward(task, &input, b.size, &mut tape);
             let q = tape.output();
             let d_q: Vec<f32> = q
@@ -435,6 +534,7 @@ impl Agent {
         let mut loss = 0.0;
         let mut q_tapes = Vec::new();
         let mut mean_abs_q = 0.0;
+        let context_dim = self.context_dim();
         for (task, b) in batches.iter().enumerate().filter(|(_, b)| b.size > 0) {
             self.actor.forward(task, &b.obs, b.size, &mut actor_tape);
             let mut actions = actor_tape.output().to_vec();
@@ -443,7 +543,9 @@ impl Agent {
                     .chunks_exact_mut(ACTION_DIM)
                     .for_each(|a| a[2] = 0.0);
             }
-            let input = concat_rows(&b.obs, obs_dim, &actions, b.size);
+            // The other herders' actions are the ones they took (MADDPG): only this herder's
+            // own action follows the actor.
+            let input = critic_rows(&b.obs, obs_dim, &actions, &b.context, context_dim, b.size);
             self.critic.forward(task, &input, b.size, &mut tape);
             loss -= tape.output().iter().sum::<f32>() / total as f32;
             mean_abs_q += tape.output().iter().map(|q| q.abs()).sum::<f32>() / total as f32;
@@ -461,10 +563,10 @@ impl Agent {
                 .critic
                 .backward(q_tape, &d_q, None, true)
                 .unwrap_or_default();
-            let stride = obs_dim + ACTION_DIM;
+            let stride = obs_dim + ACTION_DIM + context_dim;
             let mut d_action: Vec<f32> = d_input
                 .chunks_exact(stride)
-                .flat_map(|row| row[obs_dim..].iter().copied())
+                .flat_map(|row| row[obs_dim..obs_dim + ACTION_DIM].iter().copied())
                 .collect();
             if self.config.planar {
                 // The critic never sees a vertical action: pull the actor's towards zero so
@@ -713,6 +815,89 @@ mod tests {
             let expected = 0.5 * b.rewards[r] + 0.9 * b.continues[r] * q1[r];
             assert!((single[r] - expected).abs() < 1e-6);
         }
+    }
+
+    /// A batch for a centralised critic: `counts[r]` other herders at `s'` per row.
+    fn batch_with_others(obs_dim: usize, counts: &[u8], rng: &mut ChaCha8Rng) -> Batch {
+        let mut b = batch_of(obs_dim, counts.len(), rng);
+        b.max_others = 3;
+        for &k in counts {
+            b.context
+                .extend((0..obs_dim + ACTION_DIM).map(|_| rng.random_range(-1.0..1.0)));
+            for slot in 0..3 {
+                for _ in 0..obs_dim {
+                    let v = if slot < usize::from(k) {
+                        rng.random_range(-1.0..1.0)
+                    } else {
+                        0.0
+                    };
+                    b.next_others.push(v);
+                }
+            }
+            b.next_others_count.push(k);
+        }
+        b
+    }
+
+    #[test]
+    fn the_centralised_critic_pools_the_other_herders_whatever_their_order() {
+        let mut rng = ChaCha8Rng::seed_from_u64(21);
+        let config = DdpgConfig {
+            centralised_critic: true,
+            twin_critics: true,
+            planar: true,
+            policy_frequency: 1,
+            ..DdpgConfig::default()
+        };
+        let network = NetworkConfig {
+            hidden: 16,
+            shared_layers: 1,
+        };
+        let obs_dim = 4;
+        let mut agent = Agent::new(obs_dim, 2, network, config, &mut rng);
+        assert_eq!(agent.context_dim(), obs_dim + ACTION_DIM);
+        assert_eq!(agent.critic.inputs(), 2 * (obs_dim + ACTION_DIM));
+        let b = batch_with_others(obs_dim, &[3, 2, 1, 0, 3], &mut rng);
+        let targets = agent.td_targets(0, &b);
+        // Every order of each row's other herders gives the same targets.
+        let stride = 3 * obs_dim;
+        for rotation in 1..3 {
+            let mut permuted = b.clone();
+            for r in 0..b.size {
+                let k = usize::from(b.next_others_count[r]);
+                let rows = &mut permuted.next_others[r * stride..r * stride + k * obs_dim];
+                let mut chunks: Vec<Vec<f32>> = rows.chunks(obs_dim).map(<[f32]>::to_vec).collect();
+                chunks.rotate_left(rotation % k.max(1));
+                chunks.reverse();
+                rows.copy_from_slice(&chunks.concat());
+            }
+            assert_ne!(permuted.next_others, b.next_others, "the order changed");
+            let again = agent.td_targets(0, &permuted);
+            for (x, y) in again.iter().zip(&targets) {
+                assert!((x - y).abs() < 1e-5, "{x} vs {y}");
+            }
+        }
+        // The others matter: moving one of them moves the target of its row only (row 1:
+        // row 0 is terminal, see `batch_of`).
+        let mut moved = b.clone();
+        moved.next_others[stride] += 0.9;
+        let after = agent.td_targets(0, &moved);
+        assert!(
+            (after[1] - targets[1]).abs() > 1e-7,
+            "row 1 should see its other herder"
+        );
+        for r in [0, 2, 3, 4] {
+            assert!((after[r] - targets[r]).abs() < 1e-6, "row {r}");
+        }
+        // A row without others has an empty pool: the same as a context of zeros.
+        let lone = critic_rows(&[0.5; 4], obs_dim, &[0.1, 0.2, 0.0], &[], 7, 1);
+        assert_eq!(&lone[7..], &[0.0; 7]);
+        // An update runs, and the actor's gradient reaches it through its own action only.
+        let before: Vec<Vec<f32>> = agent.actor.layers().map(|l| l.weights.clone()).collect();
+        let stats = agent.update(&[b.clone(), b]);
+        assert!(stats.critic_loss.is_finite());
+        let after: Vec<Vec<f32>> = agent.actor.layers().map(|l| l.weights.clone()).collect();
+        assert!(after != before, "the actor moved");
     }
 
     #[test]

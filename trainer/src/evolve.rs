@@ -132,6 +132,7 @@ pub fn scenario_of(s: &EvolutionScenario, step_limit: u64) -> Scenario {
         targets: s.targets,
         herders: s.herders,
         room: s.room,
+        goal_distance_permille: 1000,
     };
     // The score reads only success and time, so the reward settings do not matter here.
     training_scenario(draw, step_limit, true, &RewardConfig::default(), 0.99)

@@ -33,6 +33,56 @@ pub struct ReplayBuffer {
     /// `gamma^(k-1) (1 - terminated)` of a `k`-step transition: what multiplies
     /// `gamma Q'(s')` in its TD target.
     continues: Vec<f32>,
+    /// The centralised critic's columns, when kept.
+    others: Option<OthersColumns>,
+}
+
+/// What a centralised critic needs beyond one herder's own transition: the other herders
+/// pooled where the transition starts, and one by one where it ends (their next actions come
+/// from the target actor at update time, so their observations must be kept).
+#[derive(Clone, Debug)]
+struct OthersColumns {
+    max_others: usize,
+    /// `[capacity][obs_dim + action_dim]`: [`pool_others`] at `s`.
+    context: Vec<f32>,
+    /// `[capacity][max_others][obs_dim]`: the others' observations at `s'`, zero-padded.
+    next_others: Vec<f32>,
+    /// How many of `next_others` rows are real.
+    next_count: Vec<u8>,
+}
+
+/// The other herders of one transition, as the centralised critic sees them.
+#[derive(Clone, Copy, Debug)]
+pub struct Others<'a> {
+    /// [`pool_others`] of their observations and actions at `s`.
+    pub context: &'a [f32],
+    /// Their observations at `s'`, one row each (at most the buffer's `max_others`).
+    pub next_obs: &'a [f32],
+}
+
+/// The mean of the other herders' observations and the mean of their actions, `[mean obs |
+/// mean action]` (zeros when there are none): a summary that does not depend on their order
+/// or number, so one critic serves any team size.
+pub fn pool_others(obs: &[f32], actions: &[f32], obs_dim: usize, action_dim: usize) -> Vec<f32> {
+    let mut out = vec![0.0; obs_dim + action_dim];
+    let count = obs.len() / obs_dim.max(1);
+    if count == 0 {
+        return out;
+    }
+    for row in obs.chunks_exact(obs_dim) {
+        out[..obs_dim]
+            .iter_mut()
+            .zip(row)
+            .for_each(|(o, x)| *o += x);
+    }
+    for row in actions.chunks_exact(action_dim) {
+        out[obs_dim..]
+            .iter_mut()
+            .zip(row)
+            .for_each(|(o, x)| *o += x);
+    }
+    out.iter_mut().for_each(|o| *o /= count as f32);
+    out
 }
 
 /// A sampled minibatch, row-major.
@@ -51,6 +101,15 @@ pub struct Batch {
     /// `1 - terminated` for one-step transitions; `gamma^(k-1) (1 - terminated)` for `k`-step
     /// ones: the TD target is `r + gamma continues Q'(next_obs)`.
     pub continues: Vec<f32>,
+    /// Centralised critic only (else empty): `[size][obs_dim + action_dim]`, the other herders
+    /// pooled at `s`.
+    pub context: Vec<f32>,
+    /// Centralised critic only: `[size][max_others][obs_dim]`, the others at `s'`.
+    pub next_others: Vec<f32>,
+    /// Centralised critic only: real rows of `next_others` per transition.
+    pub next_others_count: Vec<u8>,
+    /// Centralised critic only: rows of `next_others` per transition (0 otherwise).
+    pub max_others: usize,
 }
 
 impl ReplayBuffer {
@@ -68,7 +127,28 @@ impl ReplayBuffer {
             rewards: vec![0.0; capacity],
             next_obs: vec![0.0; capacity * obs_dim],
             continues: vec![1.0; capacity],
+            others: None,
         }
+    }
+
+    /// This buffer, also keeping the other herders (at most `max_others` of them) for a
+    /// centralised critic; transitions must then be pushed with
+    /// [`ReplayBuffer::push_with_others`].
+    pub fn with_others(mut self, max_others: usize) -> ReplayBuffer {
+        let max_others = max_others.clamp(1, usize::from(u8::MAX));
+        let (c, o) = (self.capacity, self.obs_dim);
+        self.others = Some(OthersColumns {
+            max_others,
+            context: vec![0.0; c * (o + self.action_dim)],
+            next_others: vec![0.0; c * max_others * o],
+            next_count: vec![0; c],
+        });
+        self
+    }
+
+    /// The most other herders a transition keeps (0: no centralised critic columns).
+    pub fn max_others(&self) -> usize {
+        self.others.as_ref().map_or(0, |o| o.max_others)
     }
 
     /// Stored transitions.
@@ -119,8 +199,43 @@ impl ReplayBuffer {
         self.actions[i * a..(i + 1) * a].copy_from_slice(action);
         self.rewards[i] = reward;
         self.continues[i] = continues;
+        if let Some(cols) = self.others.as_mut() {
+            // A transition without others (a lone herder) has an empty pool.
+            let w = o + a;
+            cols.context[i * w..(i + 1) * w].fill(0.0);
+            cols.next_count[i] = 0;
+        }
         self.next = (self.next + 1) % self.capacity;
         self.len = (self.len + 1).min(self.capacity);
+    }
+
+    /// Adds a transition with its other herders (a buffer made [`ReplayBuffer::with_others`];
+    /// on a plain buffer the others are dropped). Others beyond `max_others` are dropped too:
+    /// the caller passes the nearest first.
+    pub fn push_with_others(
+        &mut self,
+        obs: &[f32],
+        action: &[f32],
+        reward: f32,
+        next_obs: &[f32],
+        continues: f32,
+        others: Others<'_>,
+    ) {
+        let i = self.next;
+        self.push_discounted(obs, action, reward, next_obs, continues);
+        let (o, a) = (self.obs_dim, self.action_dim);
+        let Some(cols) = self.others.as_mut() else {
+            return;
+        };
+        let w = o + a;
+        assert_eq!(others.context.len(), w, "pooled context width");
+        cols.context[i * w..(i + 1) * w].copy_from_slice(others.context);
+        let k = (others.next_obs.len() / o.max(1)).min(cols.max_others);
+        let row = cols.max_others * o;
+        let dst = &mut cols.next_others[i * row..(i + 1) * row];
+        dst[..k * o].copy_from_slice(&others.next_obs[..k * o]);
+        dst[k * o..].fill(0.0);
+        cols.next_count[i] = k as u8;
     }
 
     /// Draws `size` transitions uniformly with replacement into `batch` (empty if the buffer is).
@@ -131,6 +246,10 @@ impl ReplayBuffer {
         batch.rewards.clear();
         batch.next_obs.clear();
         batch.continues.clear();
+        batch.context.clear();
+        batch.next_others.clear();
+        batch.next_others_count.clear();
+        batch.max_others = self.max_others();
         batch.size = if self.len == 0 { 0 } else { size };
         for _ in 0..batch.size {
             let i = rng.random_range(0..self.len);
@@ -143,6 +262,17 @@ impl ReplayBuffer {
                 .next_obs
                 .extend_from_slice(&self.next_obs[i * o..(i + 1) * o]);
             batch.continues.push(self.continues[i]);
+            if let Some(cols) = &self.others {
+                let w = o + a;
+                batch
+                    .context
+                    .extend_from_slice(&cols.context[i * w..(i + 1) * w]);
+                let row = cols.max_others * o;
+                batch
+                    .next_others
+                    .extend_from_slice(&cols.next_others[i * row..(i + 1) * row]);
+                batch.next_others_count.push(cols.next_count[i]);
+            }
         }
     }
 }
@@ -159,11 +289,36 @@ impl ReplayBuffer {
 pub struct NStep {
     n: usize,
     gamma: f32,
-    pending: std::collections::VecDeque<(Vec<f32>, Vec<f32>, f32, usize)>,
+    pending: std::collections::VecDeque<Pending>,
 }
 
-/// An n-step transition: `(obs, action, discounted reward sum, next_obs, continues)`.
-pub type NStepTransition = (Vec<f32>, Vec<f32>, f32, Vec<f32>, f32);
+/// A transition waiting for its later rewards.
+#[derive(Clone, Debug)]
+struct Pending {
+    obs: Vec<f32>,
+    action: Vec<f32>,
+    context: Vec<f32>,
+    sum: f32,
+    steps: usize,
+}
+
+/// An n-step transition: `(obs, action, discounted reward sum, next_obs, continues)`, and the
+/// pooled other herders where it started (empty without a centralised critic).
+#[derive(Clone, Debug, PartialEq)]
+pub struct NStepTransition {
+    /// The observation acted on.
+    pub obs: Vec<f32>,
+    /// The action taken.
+    pub action: Vec<f32>,
+    /// `r_t + gamma r_(t+1) + ...` over the transition's steps.
+    pub reward: f32,
+    /// The observation where it ends.
+    pub next_obs: Vec<f32>,
+    /// What multiplies `gamma Q'(next_obs)` in the target.
+    pub continues: f32,
+    /// The other herders pooled at `obs` ([`OneStep::context`]).
+    pub context: Vec<f32>,
+}
 
 /// One environment step of one herder, as [`NStep::push`] takes it.
 #[derive(Clone, Copy, Debug)]
@@ -180,6 +335,8 @@ pub struct OneStep<'a> {
     pub terminated: bool,
     /// The episode was cut by the step limit (bootstrap past it).
     pub truncated: bool,
+    /// The other herders pooled at `obs`, for a centralised critic (empty otherwise).
+    pub context: &'a [f32],
 }
 
 impl NStep {
@@ -201,35 +358,44 @@ impl NStep {
             next_obs,
             terminated,
             truncated,
+            context,
         } = step;
         // Every pending transition gains this step's reward at its own discount.
-        for (_, _, sum, steps) in self.pending.iter_mut() {
-            *sum += self.gamma.powi(*steps as i32) * reward;
-            *steps += 1;
+        for p in self.pending.iter_mut() {
+            p.sum += self.gamma.powi(p.steps as i32) * reward;
+            p.steps += 1;
         }
-        self.pending
-            .push_back((obs.to_vec(), action.to_vec(), reward, 1));
+        self.pending.push_back(Pending {
+            obs: obs.to_vec(),
+            action: action.to_vec(),
+            context: context.to_vec(),
+            sum: reward,
+            steps: 1,
+        });
+        let finish = |p: Pending, continues: f32| NStepTransition {
+            obs: p.obs,
+            action: p.action,
+            reward: p.sum,
+            next_obs: next_obs.to_vec(),
+            continues,
+            context: p.context,
+        };
         if terminated || truncated {
-            for (o, a, sum, steps) in self.pending.drain(..) {
+            for p in self.pending.drain(..) {
                 let continues = if terminated {
                     0.0
                 } else {
-                    self.gamma.powi(steps as i32 - 1)
+                    self.gamma.powi(p.steps as i32 - 1)
                 };
-                out.push((o, a, sum, next_obs.to_vec(), continues));
+                out.push(finish(p, continues));
             }
             return;
         }
-        if self.pending.front().is_some_and(|p| p.3 >= self.n)
-            && let Some((o, a, sum, steps)) = self.pending.pop_front()
+        if self.pending.front().is_some_and(|p| p.steps >= self.n)
+            && let Some(p) = self.pending.pop_front()
         {
-            out.push((
-                o,
-                a,
-                sum,
-                next_obs.to_vec(),
-                self.gamma.powi(steps as i32 - 1),
-            ));
+            let continues = self.gamma.powi(p.steps as i32 - 1);
+            out.push(finish(p, continues));
         }
     }
 
@@ -284,6 +450,7 @@ mod tests {
                 next_obs: &[t as f32 + 1.0],
                 terminated: last && terminated,
                 truncated: last && !terminated,
+                context: &[],
             };
             acc.push(step, &mut out);
         }
@@ -295,15 +462,15 @@ mod tests {
         let out = run(3, &[1.0, 2.0, 4.0, 8.0, 16.0, 32.0], false);
         // Transitions 0-3 are complete 3-step ones; at the truncation 4 and 5 are flushed.
         assert_eq!(out.len(), 6);
-        let (o, _, sum, next, continues) = &out[0];
-        assert_eq!((o[0], next[0]), (0.0, 3.0));
-        assert_eq!(*sum, 1.0 + 0.5 * 2.0 + 0.25 * 4.0);
+        let t = &out[0];
+        assert_eq!((t.obs[0], t.next_obs[0]), (0.0, 3.0));
+        assert_eq!(t.reward, 1.0 + 0.5 * 2.0 + 0.25 * 4.0);
         assert_eq!(
-            *continues, 0.25,
+            t.continues, 0.25,
             "gamma^(n-1): the target adds gamma * this * Q'"
         );
-        for (k, (o, _, _, next, _)) in out.iter().take(4).enumerate() {
-            assert_eq!((o[0], next[0]), (k as f32, k as f32 + 3.0));
+        for (k, t) in out.iter().take(4).enumerate() {
+            assert_eq!((t.obs[0], t.next_obs[0]), (k as f32, k as f32 + 3.0));
         }
     }
 
@@ -312,7 +479,10 @@ mod tests {
         let out = run(3, &[1.0, 2.0, 4.0, 8.0], true);
         assert_eq!(out.len(), 4);
         // The last three end at the terminal: partial sums, no bootstrap.
-        let tail: Vec<(f32, f32, f32)> = out[1..].iter().map(|t| (t.0[0], t.2, t.4)).collect();
+        let tail: Vec<(f32, f32, f32)> = out[1..]
+            .iter()
+            .map(|t| (t.obs[0], t.reward, t.continues))
+            .collect();
         assert_eq!(
             tail,
             vec![
@@ -321,7 +491,7 @@ mod tests {
                 (3.0, 8.0, 0.0)
             ]
         );
-        assert!(out.iter().all(|t| t.3[0] == 4.0 || t.0[0] == 0.0));
+        assert!(out.iter().all(|t| t.next_obs[0] == 4.0 || t.obs[0] == 0.0));
     }
 
     #[test]
@@ -329,18 +499,74 @@ mod tests {
         let out = run(3, &[1.0, 2.0], false);
         // Cut after two steps: the first bootstraps 2 steps on (gamma^1), the second 1 step.
         assert_eq!(out.len(), 2);
-        assert_eq!(
-            (out[0].2, out[0].3[0], out[0].4),
-            (1.0 + 0.5 * 2.0, 2.0, 0.5)
-        );
-        assert_eq!((out[1].2, out[1].3[0], out[1].4), (2.0, 2.0, 1.0));
+        let row = |t: &NStepTransition| (t.reward, t.next_obs[0], t.continues);
+        assert_eq!(row(&out[0]), (1.0 + 0.5 * 2.0, 2.0, 0.5));
+        assert_eq!(row(&out[1]), (2.0, 2.0, 1.0));
     }
 
     #[test]
     fn one_step_n_step_is_the_plain_transition() {
         let out = run(1, &[3.0, 5.0], true);
         assert_eq!(out.len(), 2);
-        assert_eq!((out[0].2, out[0].3[0], out[0].4), (3.0, 1.0, 1.0));
-        assert_eq!((out[1].2, out[1].3[0], out[1].4), (5.0, 2.0, 0.0));
+        let row = |t: &NStepTransition| (t.reward, t.next_obs[0], t.continues);
+        assert_eq!(row(&out[0]), (3.0, 1.0, 1.0));
+        assert_eq!(row(&out[1]), (5.0, 2.0, 0.0));
+    }
+
+    #[test]
+    fn pooling_the_other_herders_ignores_their_order() {
+        let obs = [1.0, 2.0, 3.0, 4.0, -5.0, 0.5];
+        let actions = [0.1, 0.2, -0.3, 0.4, 0.0, 0.6];
+        let pooled = pool_others(&obs, &actions, 2, 2);
+        assert_eq!(pooled, vec![-1.0 / 3.0, 6.5 / 3.0, -0.2 / 3.0, 1.2 / 3.0]);
+        // Every order of the three herders gives the same pool.
+        for order in [[0, 2, 1], [1, 0, 2], [1, 2, 0], [2, 0, 1], [2, 1, 0]] {
+            let o: Vec<f32> = order
+                .iter()
+                .flat_map(|&k| obs[2 * k..2 * k + 2].to_vec())
+                .collect();
+            let a: Vec<f32> = order
+                .iter()
+                .flat_map(|&k| actions[2 * k..2 * k + 2].to_vec())
+                .collect();
+            let p = pool_others(&o, &a, 2, 2);
+            for (x, y) in p.iter().zip(&pooled) {
+                assert!((x - y).abs() < 1e-6, "{p:?} vs {pooled:?}");
+            }
+        }
+        assert_eq!(
+            pool_others(&[], &[], 2, 2),
+            vec![0.0; 4],
+            "alone: an empty pool"
+        );
+    }
+
+    #[test]
+    fn others_columns_keep_rows_together_and_pad() {
+        let mut b = ReplayBuffer::new(2, 1, 4).with_others(3);
+        b.push_with_others(
+            &[1.0, 1.0],
+            &[0.5],
+            -1.0,
+            &[2.0, 2.0],
+            1.0,
+            Others {
+                context: &[7.0, 8.0, 9.0],
+                next_obs: &[1.0, 2.0, 3.0, 4.0],
+            },
+        );
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(1);
+        let mut batch = Batch::default();
+        b.sample(2, &mut rng, &mut batch);
+        assert_eq!(batch.max_others, 3);
+        assert_eq!(batch.context, vec![7.0, 8.0, 9.0, 7.0, 8.0, 9.0]);
+        assert_eq!(batch.next_others_count, vec![2, 2]);
+        assert_eq!(&batch.next_others[..6], &[1.0, 2.0, 3.0, 4.0, 0.0, 0.0]);
+        // A plain push on the same buffer is a lone herder: an empty pool.
+        let mut lone = ReplayBuffer::new(2, 1, 1).with_others(3);
+        lone.push(&[0.0, 0.0], &[0.0], 0.0, &[0.0, 0.0], true);
+        lone.sample(1, &mut rng, &mut batch);
+        assert_eq!(batch.next_others_count, vec![0]);
+        assert_eq!(batch.context, vec![0.0; 3]);
     }
 }

@@ -13,7 +13,9 @@
 //!   ```text
 //!   r_h = - time_cost                                  every step, until the episode ends
 //!         + shaping (gamma Phi(s') - Phi(s))             potential-based: the optimal policy is
-//!                                                      the unshaped one's (Ng et al. 1999)
+//!                                                      the unshaped one's (Ng et al. 1999);
+//!                                                      or (Phi(s') - Phi(s)), the progress
+//!                                                      form ([`ShapingForm`])
 //!         - flight_cost |v_h| / v_max                    this herder's own flight, not the team's
 //!         + success_bonus                                when every target is in the goal
 //!         - leave_penalty_horizons / (1 - gamma)         once, when anything leaves the arena
@@ -52,9 +54,11 @@ pub enum RewardKind {
 pub struct AuditedReward {
     /// Paid every step until the episode ends.
     pub time_cost: f64,
-    /// Weight of the potential-based shaping on the flock's distance to the goal edge (in goal
-    /// radii, averaged over the targets).
+    /// Weight of the shaping on the flock's distance to the goal edge (in goal radii, averaged
+    /// over the targets).
     pub shaping: f64,
+    /// How the shaping term is formed from the potential.
+    pub shaping_form: ShapingForm,
     /// Each herder pays this times its own speed over the speed limit, per step.
     pub flight_cost: f64,
     /// Paid once when every target is in the goal.
@@ -69,11 +73,29 @@ impl Default for AuditedReward {
         Self {
             time_cost: 1.0,
             shaping: 1.0,
+            shaping_form: ShapingForm::Potential,
             flight_cost: 0.05,
             success_bonus: 10.0,
             leave_penalty_horizons: 2.0,
         }
     }
+}
+
+/// How the shaping term is formed from the potential `Phi`.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ShapingForm {
+    /// `gamma Phi(s') - Phi(s)`, with `Phi = 0` in a terminal state: potential-based shaping
+    /// (Ng et al. 1999). It leaves every policy's advantage unchanged, so once the critic has
+    /// converged it adds no pull towards the goal: it only speeds up early value learning.
+    #[default]
+    Potential,
+    /// `Phi(s') - Phi(s)`: the progress made this step (a terminal state keeps its real
+    /// potential). This is the potential form plus `(1 - gamma) Phi(s')`, a dense cost on the
+    /// flock's distance to the goal, so bringing the flock closer sooner keeps paying after the
+    /// critic converges; it changes the optimum only towards being near the goal earlier.
+    /// Over an episode it sums (undiscounted) to `Phi(s_T) - Phi(s_0)`.
+    Progress,
 }
 
 /// The potential of a world: minus the targets' mean distance beyond the goal edge, in goal
@@ -151,12 +173,12 @@ impl LearnerReward {
             }
             RewardKind::Audited => {
                 let a = &self.config.audited;
-                let next = if outcome.terminated {
-                    0.0
-                } else {
-                    potential(after)
+                let (next, discount) = match a.shaping_form {
+                    ShapingForm::Potential if outcome.terminated => (0.0, self.gamma),
+                    ShapingForm::Potential => (potential(after), self.gamma),
+                    ShapingForm::Progress => (potential(after), 1.0),
                 };
-                let mut team = -a.time_cost + a.shaping * (self.gamma * next - self.potential);
+                let mut team = -a.time_cost + a.shaping * (discount * next - self.potential);
                 if outcome.success {
                     team += a.success_bonus;
                 }
@@ -193,6 +215,7 @@ mod tests {
             audited: AuditedReward {
                 time_cost: 0.0,
                 shaping,
+                shaping_form: ShapingForm::Potential,
                 flight_cost,
                 success_bonus: 0.0,
                 leave_penalty_horizons: 0.0,
@@ -243,6 +266,35 @@ mod tests {
                 "{discounted} vs {expected}"
             );
             assert!(first < 0.0, "targets start outside the goal");
+        }
+    }
+
+    #[test]
+    fn the_progress_form_sums_to_the_progress_made() {
+        let mut config = audited(2.0, 0.0);
+        config.audited.shaping_form = ShapingForm::Progress;
+        for velocity in [[0.0; 3], [3.0, -2.0, 0.0], [-5.0, -5.0, 0.0]] {
+            let scenario = scenario();
+            let mut env = Env::new(scenario.clone()).unwrap();
+            let mut reward = LearnerReward::new(&config, 0.97, &scenario);
+            env.reset(5);
+            reward.start(env.world());
+            let first = potential(env.world());
+            let mut total = 0.0;
+            let mut r = Vec::new();
+            loop {
+                let velocities = vec![velocity; env.world().herders.len()];
+                let out = env.step(&velocities).unwrap();
+                reward.step(&out, env.world(), &velocities, &mut r);
+                total += f64::from(r[0]);
+                if out.terminated || out.truncated {
+                    break;
+                }
+            }
+            // Undiscounted, and a terminal keeps its real potential (leaving is no escape
+            // from the distance still to go).
+            let expected = 2.0 * (potential(env.world()) - first);
+            assert!((total - expected).abs() < 1e-4, "{total} vs {expected}");
         }
     }
 

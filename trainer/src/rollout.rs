@@ -21,7 +21,7 @@ use crate::config::{
 };
 use crate::ddpg::{ACTION_DIM, DdpgConfig, Exploration};
 use crate::network::{MultiTaskMlp, Tape};
-use crate::replay::{NStep, OneStep, ReplayBuffer};
+use crate::replay::{NStep, OneStep, Others, ReplayBuffer, pool_others};
 use crate::reward::LearnerReward;
 
 /// One training scenario: task, N and M (0 = adaptive).
@@ -36,6 +36,9 @@ pub struct Draw {
     /// The indoor room's layout at paper scale instead of the paper's (see
     /// `LoopConfig::room_layout_fraction`).
     pub room: bool,
+    /// Driving: the share of the spawned start-goal distance kept, in thousandths (1000: the
+    /// layout's own; see `GoalDistanceCurriculum`). An integer so that a draw stays `Eq`.
+    pub goal_distance_permille: u16,
 }
 
 impl Draw {
@@ -46,6 +49,7 @@ impl Draw {
             targets,
             herders,
             room: false,
+            goal_distance_permille: 1000,
         }
     }
 }
@@ -89,6 +93,34 @@ pub fn training_scenario(
         s.reward.correction = RewardCorrection::LeaveCoversRemainingSteps { gamma };
     }
     s
+}
+
+/// The other herders of herder `own` whose observation the encoder gave, nearest first (by
+/// ground distance, ties by index), at most `max`: the ones a centralised critic pools.
+pub fn nearest_others(
+    positions: &[[f64; 3]],
+    own: usize,
+    max: usize,
+    frames: &[Option<LocalFrame>],
+) -> Vec<usize> {
+    let p = positions[own];
+    let mut others: Vec<(f64, usize)> = (0..positions.len())
+        .filter(|&j| j != own && frames.get(j).is_some_and(Option::is_some))
+        .map(|j| ((positions[j][0] - p[0]).hypot(positions[j][1] - p[1]), j))
+        .collect();
+    others.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+    others.into_iter().take(max).map(|(_, j)| j).collect()
+}
+
+/// `world` with its goal moved along the line from the flock centroid, keeping `share` of the
+/// distance (the goal stays inside the arena: both ends of the line are).
+pub fn pull_goal(world: &skyherd_sim::World, share: f64) -> skyherd_sim::World {
+    let mut w = world.clone();
+    let c = w.flock_centroid();
+    let g = w.goal.center;
+    let share = share.clamp(0.0, 1.0);
+    w.goal.center = [c[0] + share * (g[0] - c[0]), c[1] + share * (g[1] - c[1])];
+    w
 }
 
 /// What one finished training episode did.
@@ -208,6 +240,10 @@ impl Rollouts {
         // Training episode seeds stay below the held-out evaluation seeds (>= 1e9).
         let seed = self.rng.random_range(0..1_000_000_000u64);
         env.reset(seed);
+        if draw.task == Task::Driving && draw.goal_distance_permille < 1000 {
+            let world = pull_goal(env.world(), f64::from(draw.goal_distance_permille) / 1000.0);
+            env.reset_to(world, seed)?;
+        }
         reward.start(env.world());
         let herder = HerderState {
             nstep: NStep::new(self.ddpg.n_step, self.gamma as f32),
@@ -255,6 +291,12 @@ impl Rollouts {
                 let v = slot.frames[h].map_or([0.0; 3], |f| f.action_to_world(*a));
                 velocities.push([f64::from(v[0]), f64::from(v[1]), f64::from(v[2])]);
             }
+            let centralised = self.ddpg.centralised_critic;
+            let positions_before = if centralised {
+                slot.env.world().herders.clone()
+            } else {
+                Vec::new()
+            };
             let out = slot.env.step(&velocities)?;
             self.env_steps += 1;
             slot.reward
@@ -275,14 +317,46 @@ impl Rollouts {
                 // A buffer as wide as an older encoder's features keeps that prefix.
                 let w = replay[task].obs_dim();
                 let r = herder_rewards[h];
+                let max_others = self.ddpg.critic_max_others;
+                let (context, next_others) = if centralised {
+                    let near = nearest_others(&positions_before, h, max_others, &before_frames);
+                    let obs: Vec<f32> =
+                        near.iter().flat_map(|&j| before[j][..w].to_vec()).collect();
+                    let acts: Vec<f32> = near.iter().flat_map(|&j| slot_actions[j]).collect();
+                    let after = &slot.env.world().herders;
+                    let near_after = nearest_others(after, h, max_others, &slot.frames);
+                    let next: Vec<f32> = near_after
+                        .iter()
+                        .flat_map(|&j| slot.features[j][..w].to_vec())
+                        .collect();
+                    (pool_others(&obs, &acts, w, ACTION_DIM), next)
+                } else {
+                    (Vec::new(), Vec::new())
+                };
+                let others = Others {
+                    context: &context,
+                    next_obs: &next_others,
+                };
                 if self.ddpg.n_step <= 1 {
-                    replay[task].push(
-                        &before[h][..w],
-                        &slot_actions[h],
-                        r,
-                        &slot.features[h][..w],
-                        out.terminated,
-                    );
+                    let continues = if out.terminated { 0.0 } else { 1.0 };
+                    if centralised {
+                        replay[task].push_with_others(
+                            &before[h][..w],
+                            &slot_actions[h],
+                            r,
+                            &slot.features[h][..w],
+                            continues,
+                            others,
+                        );
+                    } else {
+                        replay[task].push(
+                            &before[h][..w],
+                            &slot_actions[h],
+                            r,
+                            &slot.features[h][..w],
+                            out.terminated,
+                        );
+                    }
                 } else {
                     emitted.clear();
                     let step = OneStep {
@@ -292,10 +366,32 @@ impl Rollouts {
                         next_obs: &slot.features[h][..w],
                         terminated: out.terminated,
                         truncated: out.truncated,
+                        context: &context,
                     };
                     slot.herders[h].nstep.push(step, &mut emitted);
-                    for (o, a, sum, next, continues) in &emitted {
-                        replay[task].push_discounted(o, a, *sum, next, *continues);
+                    for t in &emitted {
+                        if centralised {
+                            let others = Others {
+                                context: &t.context,
+                                next_obs: &next_others,
+                            };
+                            replay[task].push_with_others(
+                                &t.obs,
+                                &t.action,
+                                t.reward,
+                                &t.next_obs,
+                                t.continues,
+                                others,
+                            );
+                        } else {
+                            replay[task].push_discounted(
+                                &t.obs,
+                                &t.action,
+                                t.reward,
+                                &t.next_obs,
+                                t.continues,
+                            );
+                        }
                     }
                 }
                 if let Some(d) = demos.as_deref_mut() {
@@ -444,7 +540,7 @@ pub(crate) fn draw_from_stage(
     rng: &mut ChaCha8Rng,
     task: Task,
 ) -> Draw {
-    draw_in(config, config.stage_at(progress), rng, task)
+    draw_in(config, config.stage_at(progress), rng, task, progress)
 }
 
 /// A draw from any stage at random: the warm start's demonstrations cover the whole curriculum.
@@ -455,23 +551,33 @@ pub(crate) fn draw_from_all_stages(config: &TrainConfig, rng: &mut ChaCha8Rng, t
         &stages[rng.random_range(0..stages.len())],
         rng,
         task,
+        1.0,
     )
 }
 
-/// N, M and the layout drawn from `stage`.
+/// N, M and the layout drawn from `stage`, at `progress` of the DDPG phase.
 fn draw_in(
     config: &TrainConfig,
     stage: &CurriculumStage,
     rng: &mut ChaCha8Rng,
     task: Task,
+    progress: f64,
 ) -> Draw {
     let targets = stage.targets[rng.random_range(0..stage.targets.len())];
     let herders = stage.herders[rng.random_range(0..stage.herders.len())];
+    let room = draw_room(config, rng, task, targets);
+    let floor = config.curriculum.driving_goal_distance.floor_at(progress);
+    let goal_distance_permille = if task == Task::Driving && floor < 1.0 {
+        (rng.random_range(floor..=1.0) * 1000.0).round() as u16
+    } else {
+        1000
+    };
     Draw {
         task,
         targets,
         herders,
-        room: draw_room(config, rng, task, targets),
+        room,
+        goal_distance_permille,
     }
 }
 
@@ -517,6 +623,51 @@ mod tests {
     }
 
     #[test]
+    fn the_goal_distance_curriculum_pulls_early_driving_goals_in_and_lets_go_later() {
+        let mut config = TrainConfig::default();
+        config.curriculum.driving_goal_distance = crate::config::GoalDistanceCurriculum {
+            first_share: 0.25,
+            full_at_progress: 0.5,
+        };
+        let mut rng = ChaCha8Rng::seed_from_u64(4);
+        let early: Vec<Draw> = (0..200)
+            .map(|_| draw_from_stage(&config, 0.0, &mut rng, Task::Driving))
+            .collect();
+        assert!(
+            early
+                .iter()
+                .all(|d| (250..=1000).contains(&d.goal_distance_permille))
+        );
+        assert!(early.iter().any(|d| d.goal_distance_permille < 400));
+        let mid = draw_from_stage(&config, 0.25, &mut rng, Task::Driving);
+        assert!(mid.goal_distance_permille >= 625, "{mid:?}");
+        for progress in [0.5, 0.9] {
+            let late = draw_from_stage(&config, progress, &mut rng, Task::Driving);
+            assert_eq!(late.goal_distance_permille, 1000);
+        }
+        let collecting = draw_from_stage(&config, 0.0, &mut rng, Task::Collecting);
+        assert_eq!(collecting.goal_distance_permille, 1000);
+        // The pulled goal lies on the line from the centroid, at the share of the distance.
+        let mut env = Env::new(Scenario::paper(Task::Driving)).expect("env");
+        env.reset(7);
+        let w = env.world().clone();
+        let pulled = pull_goal(&w, 0.25);
+        let c = w.flock_centroid();
+        let d = |g: [f64; 2]| (g[0] - c[0]).hypot(g[1] - c[1]);
+        assert!((d(pulled.goal.center) - 0.25 * d(w.goal.center)).abs() < 1e-9);
+        assert_eq!(pulled.targets, w.targets);
+        pulled.validate().expect("a pulled goal is a valid world");
+        // The default is off.
+        assert_eq!(
+            TrainConfig::default()
+                .curriculum
+                .driving_goal_distance
+                .floor_at(0.0),
+            1.0
+        );
+    }
+
+    #[test]
     fn suicide_no_longer_pays_under_the_learner_reward() {
         // Leaving on step 1 must be worse than idling for the whole episode (the printed reward
         // rewards leaving: see `skyherd_sim::reward`).
@@ -553,6 +704,66 @@ mod tests {
             leave < idle,
             "leaving ({leave}) must cost more than idling ({idle})"
         );
+    }
+
+    #[test]
+    fn a_centralised_critic_gets_every_other_herder_pooled_and_one_by_one() {
+        let mut config = TrainConfig::default();
+        config.training.episode_step_limit = 6;
+        config.ddpg.centralised_critic = true;
+        config.ddpg.critic_max_others = 7;
+        config.ddpg.n_step = 3;
+        let mut rng = ChaCha8Rng::seed_from_u64(1);
+        let actor = MultiTaskMlp::new(MlpShape::actor(FEATURES, 16, 1), &mut rng);
+        let mut draw = |_: &mut ChaCha8Rng, task| Draw::paper(task, 4, 3);
+        let mut rollouts =
+            Rollouts::new(2, &config, ChaCha8Rng::seed_from_u64(2), &mut draw).expect("envs");
+        let mut replay: Vec<ReplayBuffer> = (0..2)
+            .map(|_| ReplayBuffer::new(FEATURES, 3, 100).with_others(7))
+            .collect();
+        for _ in 0..6 {
+            rollouts
+                .step(
+                    &Controller::Actor(&actor, 0.3),
+                    &mut replay,
+                    None,
+                    &mut draw,
+                )
+                .expect("step");
+        }
+        assert_eq!(
+            replay[0].len(),
+            18,
+            "3 herders x 6 steps, flushed at the truncation"
+        );
+        let mut batch = crate::replay::Batch::default();
+        replay[0].sample(32, &mut rng, &mut batch);
+        assert!(
+            batch.next_others_count.iter().all(|&k| k == 2),
+            "two others each"
+        );
+        let w = FEATURES + ACTION_DIM;
+        for r in 0..batch.size {
+            let context = &batch.context[r * w..(r + 1) * w];
+            assert!(
+                context.iter().any(|&x| x != 0.0),
+                "row {r} has an empty pool"
+            );
+        }
+        // The nearest come first, ties by index, and refused observations are left out.
+        let positions = [
+            [0.0, 0.0, 2.0],
+            [5.0, 0.0, 2.0],
+            [1.0, 1.0, 2.0],
+            [1.0, 1.0, 2.0],
+        ];
+        let frame = Some(LocalFrame {
+            forward: [1.0, 0.0],
+            max_speed: 5.0,
+        });
+        let frames = [frame, frame, frame, None];
+        assert_eq!(nearest_others(&positions, 0, 7, &frames), vec![2, 1]);
+        assert_eq!(nearest_others(&positions, 0, 1, &frames), vec![2]);
     }
 
     #[test]

@@ -280,10 +280,19 @@ fn sample_per_task(
     }
 }
 
-fn new_buffers(width: usize, capacity: usize) -> Vec<ReplayBuffer> {
+/// One buffer per task; `others` > 0 keeps that many other herders per transition for the
+/// centralised critic.
+fn new_buffers(width: usize, capacity: usize, others: usize) -> Vec<ReplayBuffer> {
     Task::ALL
         .iter()
-        .map(|_| ReplayBuffer::new(width, ACTION_DIM, capacity))
+        .map(|_| {
+            let buffer = ReplayBuffer::new(width, ACTION_DIM, capacity);
+            if others > 0 {
+                buffer.with_others(others)
+            } else {
+                buffer
+            }
+        })
         .collect()
 }
 
@@ -646,8 +655,16 @@ fn train_in_pool(
         agent,
         progress,
         rng,
-        replay: new_buffers(width, config.training.replay_capacity),
-        demos: new_buffers(width, config.training.replay_capacity),
+        replay: new_buffers(
+            width,
+            config.training.replay_capacity,
+            if config.ddpg.centralised_critic {
+                config.ddpg.critic_max_others
+            } else {
+                0
+            },
+        ),
+        demos: new_buffers(width, config.training.replay_capacity, 0),
         log: CsvLog::open(&dir.join("log.csv"))?,
         started: Instant::now(),
         wall_offset: progress.wall_time_s,
