@@ -485,6 +485,12 @@ pub struct LoopConfig {
     /// The first this many environment steps of the DDPG phase fly random waypoints instead
     /// of the actor (`rollout::Controller::RandomWaypoints`); they count towards `env_steps`.
     pub random_warmup_steps: u64,
+    /// Train as the drones fly: every herder's command goes through the onboard rules
+    /// (`skyherd_onboard::safety::check` with `Limits::arena`: geofence, altitude band, speed
+    /// caps) before it reaches the simulator, and the encoder reads the height above the
+    /// band's floor, exactly as `skyherd-sim eval` and the daemon fly a model. The replay keeps
+    /// the actor's own action; the rules are part of the world it learns.
+    pub flight_rules: bool,
     /// The tasks trained (`["driving", "collecting"]`: MTDDPG; one task: the single-task arm
     /// of the ablation, whose shared layers then learn from that task alone). The parallel
     /// environments cycle through them; evaluation keeps the scenarios of these tasks.
@@ -538,6 +544,7 @@ impl Default for LoopConfig {
             noise: true,
             room_layout_fraction: 0.25,
             random_warmup_steps: 0,
+            flight_rules: false,
             tasks: Task::ALL.to_vec(),
         }
     }

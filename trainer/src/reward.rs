@@ -61,6 +61,10 @@ pub struct AuditedReward {
     pub shaping_form: ShapingForm,
     /// Each herder pays this times its own speed over the speed limit, per step.
     pub flight_cost: f64,
+    /// Weight of each herder's own potential-based shaping on its distance to the nearest
+    /// target ([`approach_potential`]): the flock only moves, and so the other terms only speak,
+    /// where a herder is near it, and a herder spawned 200 m away learns that first. 0: off.
+    pub approach: f64,
     /// Paid once when every target is in the goal.
     pub success_bonus: f64,
     /// Leaving the arena costs this many horizons `1 / (1 - gamma)` of time cost, once: more
@@ -75,6 +79,7 @@ impl Default for AuditedReward {
             shaping: 1.0,
             shaping_form: ShapingForm::Potential,
             flight_cost: 0.05,
+            approach: 0.0,
             success_bonus: 10.0,
             leave_penalty_horizons: 2.0,
         }
@@ -114,6 +119,27 @@ pub fn potential(world: &World) -> f64 {
     -outside / world.targets.len() as f64
 }
 
+/// Herder `h`'s approach potential: minus its ground distance to the nearest target, in goal
+/// radii (0 with no targets). Potential-based (`gamma Phi(s') - Phi(s)`, 0 at a terminal), so
+/// it changes no policy's ranking; it only tells a far herder early that coming closer is
+/// where progress starts.
+pub fn approach_potential(world: &World, h: usize) -> f64 {
+    let Some(p) = world.herders.get(h) else {
+        return 0.0;
+    };
+    let r = world.goal.radius.max(1e-9);
+    let nearest = world
+        .targets
+        .iter()
+        .map(|t| (t[0] - p[0]).hypot(t[1] - p[1]))
+        .fold(f64::INFINITY, f64::min);
+    if nearest.is_finite() {
+        -nearest / r
+    } else {
+        0.0
+    }
+}
+
 /// The per-step cost of idling and flying at full speed, `k0 (k3 |r3| N + s k4 v_max M)` with
 /// `s` the flight scale: the natural unit of an episode's paper rewards.
 pub(crate) fn step_cost(s: &Scenario, flight_scale: f64) -> f64 {
@@ -133,6 +159,7 @@ pub struct LearnerReward {
     step_cost: f64,
     max_speed: f64,
     potential: f64,
+    approach: Vec<f64>,
 }
 
 impl LearnerReward {
@@ -144,12 +171,16 @@ impl LearnerReward {
             config: config.clone(),
             gamma,
             potential: 0.0,
+            approach: Vec::new(),
         }
     }
 
     /// A new episode begins in `world`.
     pub fn start(&mut self, world: &World) {
         self.potential = potential(world);
+        self.approach = (0..world.herders.len())
+            .map(|h| approach_potential(world, h))
+            .collect();
     }
 
     /// The reward of each herder for the step that led to `after` with the herders'
@@ -186,9 +217,22 @@ impl LearnerReward {
                     team -= a.leave_penalty_horizons * a.time_cost / (1.0 - self.gamma).max(1e-9);
                 }
                 self.potential = next;
-                out.extend(velocities.iter().map(|v| {
+                let gamma = self.gamma;
+                let terminated = outcome.terminated;
+                self.approach.resize(velocities.len(), 0.0);
+                out.extend(velocities.iter().enumerate().map(|(h, v)| {
                     let speed = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
-                    (team - a.flight_cost * speed / self.max_speed) as f32
+                    let mut r = team - a.flight_cost * speed / self.max_speed;
+                    if a.approach != 0.0 {
+                        let next = if terminated {
+                            0.0
+                        } else {
+                            approach_potential(after, h)
+                        };
+                        r += a.approach * (gamma * next - self.approach[h]);
+                        self.approach[h] = next;
+                    }
+                    r as f32
                 }));
             }
         }
@@ -217,6 +261,7 @@ mod tests {
                 shaping,
                 shaping_form: ShapingForm::Potential,
                 flight_cost,
+                approach: 0.0,
                 success_bonus: 0.0,
                 leave_penalty_horizons: 0.0,
             },
@@ -296,6 +341,51 @@ mod tests {
             let expected = 2.0 * (potential(env.world()) - first);
             assert!((total - expected).abs() < 1e-4, "{total} vs {expected}");
         }
+    }
+
+    #[test]
+    fn the_approach_term_telescopes_per_herder_and_rewards_coming_closer() {
+        let gamma = 0.97;
+        let mut config = audited(0.0, 0.0);
+        config.audited.approach = 1.5;
+        let scenario = scenario();
+        let mut env = Env::new(scenario.clone()).unwrap();
+        let mut reward = LearnerReward::new(&config, gamma, &scenario);
+        env.reset(5);
+        reward.start(env.world());
+        let first: Vec<f64> = (0..2).map(|h| approach_potential(env.world(), h)).collect();
+        // Herder 0 flies at the nearest target, herder 1 away from it.
+        let mut sums = [0.0_f64; 2];
+        let mut r = Vec::new();
+        for t in 0..20 {
+            let w = env.world();
+            let c = w.flock_centroid();
+            let towards = |h: usize, sign: f64| {
+                let p = w.herders[h];
+                let (dx, dy) = (c[0] - p[0], c[1] - p[1]);
+                let d = dx.hypot(dy).max(1e-9);
+                [sign * 2.0 * dx / d, sign * 2.0 * dy / d, 0.0]
+            };
+            let velocities = vec![towards(0, 1.0), towards(1, -1.0)];
+            let out = env.step(&velocities).unwrap();
+            reward.step(&out, env.world(), &velocities, &mut r);
+            for h in 0..2 {
+                sums[h] += gamma.powi(t) * f64::from(r[h]);
+            }
+            assert!(!out.terminated && !out.truncated);
+        }
+        for h in 0..2 {
+            let last = approach_potential(env.world(), h);
+            let expected = 1.5 * (gamma.powi(20) * last - first[h]);
+            assert!(
+                (sums[h] - expected).abs() < 1e-4,
+                "herder {h}: {} vs {expected}",
+                sums[h]
+            );
+        }
+        // (With a discount, standing far off also earns `(1 - gamma) |Phi|` a step, so the
+        // comparison is between the two herders, not against zero.)
+        assert!(sums[0] > sums[1] + 1.0, "{sums:?}");
     }
 
     #[test]

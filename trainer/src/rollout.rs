@@ -11,6 +11,7 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
 use skyherd_model::Task;
 use skyherd_onboard::obs::{FEATURES, LocalFrame};
+use skyherd_onboard::safety::{self, Limits, Situation};
 use skyherd_sim::baseline::{Method, RulePolicy};
 use skyherd_sim::obs::EncoderBuffers;
 use skyherd_sim::policy::act_all;
@@ -188,18 +189,61 @@ pub struct Rollouts {
     step_limit: u64,
     noise: bool,
     ddpg: DdpgConfig,
+    flight_rules: bool,
     /// Environment steps taken (summed over slots).
     pub env_steps: u64,
 }
 
-fn observe(observer: &mut EncoderBuffers, slot: &mut Slot) {
+/// The onboard rules' limits for `world` (see `LoopConfig::flight_rules`).
+fn flight_limits(world: &skyherd_sim::World) -> Limits {
+    let a = world.area;
+    Limits::arena(
+        [a.width as f32, a.depth as f32, a.ceiling as f32],
+        world.limits.herder as f32,
+    )
+}
+
+/// The velocity (m/s, simulator frame) that normalised `action` in `frame` becomes: through
+/// the onboard rules at the herder's observed `position` when `limits` are given; zero when
+/// the encoder refused the observation (the drone's hold).
+fn flown_velocity(
+    frame: Option<LocalFrame>,
+    action: [f32; ACTION_DIM],
+    limits: Option<&Limits>,
+    position: [f64; 3],
+) -> [f32; 3] {
+    let request = frame.map_or([0.0; 3], |f| f.action_to_world(action));
+    match limits {
+        Some(l) => {
+            let situation = Situation {
+                position: position.map(|c| c as f32),
+                velocity: request,
+                snapshot_age_s: 0.0,
+                snapshot_finite: true,
+            };
+            safety::check(l, &situation).velocity
+        }
+        None => request,
+    }
+}
+
+fn observe(observer: &mut EncoderBuffers, slot: &mut Slot, flight_rules: bool) {
     let world = slot.env.observation();
     observer.fill(world);
     let m = world.herders.len();
     slot.features.resize(m, [0.0; FEATURES]);
     slot.frames.resize(m, None);
+    let floor = flight_rules.then(|| flight_limits(world).fence_min[2]);
     for h in 0..m {
-        slot.frames[h] = observer.encode(h, &mut slot.features[h]).ok();
+        slot.frames[h] = match floor {
+            // As the daemon and `ActorPolicy::flying`: the height above the band's floor.
+            Some(floor) => {
+                let z = world.herders[h][2] as f32;
+                observer.encode_at_altitude(h, (z - floor).max(0.0), &mut slot.features[h])
+            }
+            None => observer.encode(h, &mut slot.features[h]),
+        }
+        .ok();
     }
 }
 
@@ -220,6 +264,7 @@ impl Rollouts {
             step_limit: config.training.episode_step_limit,
             noise: config.training.noise,
             ddpg: config.ddpg,
+            flight_rules: config.training.flight_rules,
             env_steps: 0,
         };
         for i in 0..count {
@@ -262,7 +307,7 @@ impl Rollouts {
             learner_return: 0.0,
             paper_return: 0.0,
         };
-        observe(&mut self.observer, &mut slot);
+        observe(&mut self.observer, &mut slot, self.flight_rules);
         Ok(slot)
     }
 
@@ -287,8 +332,12 @@ impl Rollouts {
         for (i, slot_actions) in actions.iter().enumerate() {
             let slot = &mut self.slots[i];
             velocities.clear();
+            let limits = self
+                .flight_rules
+                .then(|| flight_limits(slot.env.observation()));
             for (h, a) in slot_actions.iter().enumerate() {
-                let v = slot.frames[h].map_or([0.0; 3], |f| f.action_to_world(*a));
+                let position = slot.env.observation().herders[h];
+                let v = flown_velocity(slot.frames[h], *a, limits.as_ref(), position);
                 velocities.push([f64::from(v[0]), f64::from(v[1]), f64::from(v[2])]);
             }
             let centralised = self.ddpg.centralised_critic;
@@ -305,7 +354,7 @@ impl Rollouts {
             slot.paper_return += out.paper_reward;
             let before = std::mem::take(&mut slot.features);
             let before_frames = std::mem::take(&mut slot.frames);
-            observe(&mut self.observer, slot);
+            observe(&mut self.observer, slot, self.flight_rules);
             let task = slot.draw.task.index();
             for h in 0..before.len() {
                 if before_frames[h].is_none() || slot.frames[h].is_none() {
@@ -764,6 +813,55 @@ mod tests {
         let frames = [frame, frame, frame, None];
         assert_eq!(nearest_others(&positions, 0, 7, &frames), vec![2, 1]);
         assert_eq!(nearest_others(&positions, 0, 1, &frames), vec![2]);
+    }
+
+    #[test]
+    fn with_flight_rules_training_flies_through_the_onboard_fence() {
+        let world = Env::new(Scenario::paper(Task::Driving))
+            .expect("env")
+            .world()
+            .clone();
+        let limits = flight_limits(&world);
+        let east = Some(LocalFrame {
+            forward: [1.0, 0.0],
+            max_speed: 5.0,
+        });
+        // Beyond the east fence, asked to fly further east at full speed: steered back in.
+        let outside = [499.8, 250.0, 2.0];
+        let free = flown_velocity(east, [1.0, 0.0, 0.0], None, outside);
+        assert!(
+            free[0] > 4.9,
+            "without the rules the request goes through: {free:?}"
+        );
+        let ruled = flown_velocity(east, [1.0, 0.0, 0.0], Some(&limits), outside);
+        assert!(ruled[0] < 0.0, "the fence steers back in: {ruled:?}");
+        // Inside, a request that stays inside is left alone.
+        let inside = flown_velocity(east, [0.2, 0.0, 0.0], Some(&limits), [250.0, 250.0, 2.0]);
+        assert!((inside[0] - 1.0).abs() < 1e-5 && inside[1].abs() < 1e-6);
+        // A refused observation holds.
+        assert_eq!(
+            flown_velocity(None, [1.0, 0.0, 0.0], Some(&limits), [250.0, 250.0, 2.0]),
+            [0.0; 3]
+        );
+        // The encoder reads the height above the band's floor, as in flight.
+        let mut config = TrainConfig::default();
+        let mut draw = |_: &mut ChaCha8Rng, task| Draw::paper(task, 4, 2);
+        let plain =
+            Rollouts::new(1, &config, ChaCha8Rng::seed_from_u64(2), &mut draw).expect("envs");
+        config.training.flight_rules = true;
+        let flown =
+            Rollouts::new(1, &config, ChaCha8Rng::seed_from_u64(2), &mut draw).expect("envs");
+        let (a, b) = (&plain.slots[0].features[0], &flown.slots[0].features[0]);
+        let altitude = skyherd_onboard::obs::feature::ALTITUDE;
+        assert!(
+            b[altitude] < a[altitude],
+            "{} vs {}",
+            b[altitude],
+            a[altitude]
+        );
+        for k in (0..FEATURES).filter(|&k| k != altitude) {
+            assert_eq!(a[k], b[k], "feature {k}");
+        }
     }
 
     #[test]
