@@ -574,6 +574,8 @@ pub struct TrainConfig {
     pub eval: EvalConfig,
     /// Evolution-strategies fine-tuning of the task heads after MTDDPG.
     pub evolution: EvolutionConfig,
+    /// Start DDPG from a trained actor instead of a fresh one.
+    pub fine_tune: FineTuneConfig,
     /// The observation encoder version the actor is made for
     /// (`skyherd_onboard::obs::feature_count`): its input width. mtddpg-v1 was trained on v3.
     pub encoder_version: u16,
@@ -592,9 +594,24 @@ impl Default for TrainConfig {
             reward: RewardConfig::default(),
             eval: EvalConfig::default(),
             evolution: EvolutionConfig::default(),
+            fine_tune: FineTuneConfig::default(),
             encoder_version: skyherd_onboard::obs::ENCODER_VERSION,
         }
     }
+}
+
+/// Reinforcement-learning fine-tuning of an actor that already herds (the distilled
+/// `mtddpg-v3`, say): the actor and its target start from `actor`, the critics fresh; for the
+/// first `critic_only_env_steps` the loaded actor flies (with exploration noise) and only the
+/// critic learns (policy evaluation), so that the actor's first gradient comes from a critic
+/// that knows it, not from a random one.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct FineTuneConfig {
+    /// An actor file (`skyherd-trainer export --actor-out`, or `save_actor`); none: off.
+    pub actor: Option<PathBuf>,
+    /// Environment steps of critic-only learning before the actor moves.
+    pub critic_only_env_steps: u64,
 }
 
 impl TrainConfig {
@@ -666,6 +683,12 @@ impl TrainConfig {
                     "every stage needs target counts >= 1 and herder counts",
                 );
             }
+        }
+        if self.fine_tune.actor.is_some() && self.warm_start.enabled {
+            return bad(
+                "fine_tune.actor",
+                "a fine-tune starts from its actor: disable [warm_start]",
+            );
         }
         if self.ddpg.centralised_critic && self.ddpg.critic_max_others == 0 {
             return bad(

@@ -55,6 +55,14 @@ pub enum TrainError {
     /// The thread pool could not be built.
     #[error("thread pool: {0}")]
     Threads(String),
+    /// The fine-tune's actor does not fit the config.
+    #[error("fine_tune.actor {path}: {reason}")]
+    FineTuneActor {
+        /// The actor file.
+        path: String,
+        /// What does not fit.
+        reason: String,
+    },
 }
 
 /// What the caller hears about while training runs (a progress bar, a quiet test).
@@ -538,9 +546,12 @@ impl Run<'_> {
                             &mut demo_batches,
                         );
                     }
-                    stats =
+                    stats = if self.progress.env_steps < config.fine_tune.critic_only_env_steps {
+                        self.agent.evaluate_policy_step(&batches)
+                    } else {
                         self.agent
-                            .update_with_imitation(&batches, &demo_batches, imitation_weight);
+                            .update_with_imitation(&batches, &demo_batches, imitation_weight)
+                    };
                     update_time += tick.elapsed().as_secs_f64();
                     update_count += 1;
                 }
@@ -623,16 +634,45 @@ fn train_in_pool(
     let mut init_rng = ChaCha8Rng::seed_from_u64(config.seed);
     let (agent, progress) = match resume {
         Some(c) => (c.agent, c.progress),
-        None => (
-            Agent::new(
+        None => {
+            let mut agent = Agent::new(
                 feature_count(config.encoder_version).unwrap_or(FEATURES),
                 Task::COUNT,
                 config.network,
                 config.ddpg,
                 &mut init_rng,
-            ),
-            Progress::default(),
-        ),
+            );
+            if let Some(path) = &config.fine_tune.actor {
+                let actor = checkpoint::load_actor(path)?;
+                let fits = actor.inputs() == agent.actor.inputs()
+                    && actor.tasks() == agent.actor.tasks()
+                    && actor.outputs() == agent.actor.outputs();
+                if !fits {
+                    return Err(TrainError::FineTuneActor {
+                        path: path.display().to_string(),
+                        reason: format!(
+                            "{} inputs, {} tasks, {} outputs; the config's actor has {}, {}, {}",
+                            actor.inputs(),
+                            actor.tasks(),
+                            actor.outputs(),
+                            agent.actor.inputs(),
+                            agent.actor.tasks(),
+                            agent.actor.outputs()
+                        ),
+                    });
+                }
+                agent.actor = actor;
+                agent.target_actor = agent.actor.clone();
+                agent.actor_optimizer = crate::nn::Adam::new(
+                    crate::nn::AdamConfig {
+                        learning_rate: config.ddpg.actor_learning_rate,
+                        ..crate::nn::AdamConfig::default()
+                    },
+                    agent.actor.layers(),
+                );
+            }
+            (agent, Progress::default())
+        }
     };
     // A resumed run continues from a stream of its own, derived from where it stopped.
     let rng = ChaCha8Rng::seed_from_u64(

@@ -212,3 +212,109 @@ fn from_scratch_td3_arms_train_and_the_ablation_reports_them() {
     assert!(dir.join("report/curve-driving.svg").exists());
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// The options of the second from-scratch config (a centralised critic, the onboard flight
+/// rules, the driving-distance curriculum, the progress shaping and the approach term) train
+/// together, and a fine-tune starts from an actor file: the critic alone learns first, then the
+/// actor moves. A fine-tune whose actor does not fit is refused with the widths named.
+#[test]
+fn a_centralised_fine_tune_starts_from_its_actor_and_learns_the_critic_first() {
+    let dir = std::env::temp_dir().join(format!("skyherd-finetune-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let text = |actor: &std::path::Path, critic_only: u64| {
+        format!(
+            r#"
+            seed = 6
+            output_dir = "{}"
+            [network]
+            hidden = 16
+            [ddpg]
+            gamma = 0.995
+            twin_critics = true
+            n_step = 3
+            planar = true
+            centralised_critic = true
+            critic_max_others = 3
+            policy_frequency = 1
+            [training]
+            env_steps = 300
+            envs = 2
+            episode_step_limit = 40
+            learning_starts = 50
+            flight_rules = true
+            wall_clock_limit_s = 60.0
+            [curriculum]
+            stages = [{{ from_progress = 0.0, targets = [2, 4], herders = [3] }}]
+            [curriculum.driving_goal_distance]
+            first_share = 0.3
+            full_at_progress = 0.5
+            [warm_start]
+            enabled = false
+            [reward]
+            kind = "audited"
+            [reward.audited]
+            shaping = 5.0
+            shaping_form = "progress"
+            approach = 1.0
+            [fine_tune]
+            actor = "{}"
+            critic_only_env_steps = {critic_only}
+            [eval]
+            every_task_env_steps = 150
+            episodes = 1
+            scenarios = [["driving", 4, 3], ["collecting", 4, 3]]
+            [evolution]
+            enabled = false
+            "#,
+            dir.display(),
+            actor.display()
+        )
+    };
+    // The actor to start from: a tiny run's.
+    let mut source = tiny_config(&dir.join("source"));
+    source.training.env_steps = 100;
+    source.evolution.enabled = false;
+    source.warm_start.enabled = false;
+    train(&source, None, &mut Quiet).expect("source run");
+    let actor_file = dir.join("start.actor.safetensors");
+    let start = checkpoint::load(&dir.join("source/last.safetensors")).expect("source checkpoint");
+    checkpoint::save_actor(&actor_file, &start.agent.actor).expect("save actor");
+
+    // Critic only for the whole run: the actor is exactly the file's.
+    let frozen = TrainConfig::from_toml_str(&text(&actor_file, 10_000)).expect("config");
+    train(&frozen, None, &mut Quiet).expect("fine-tune runs");
+    let after = checkpoint::load(&dir.join("last.safetensors")).expect("checkpoint");
+    assert_eq!(
+        after.agent.actor, start.agent.actor,
+        "critic-only steps leave the actor"
+    );
+    assert!(after.agent.updates > 0);
+    assert_eq!(
+        after.agent.context_dim(),
+        after.agent.obs_dim() + 3,
+        "centralised"
+    );
+
+    // Then the actor moves.
+    let _ = std::fs::remove_file(dir.join("last.safetensors"));
+    let moving = TrainConfig::from_toml_str(&text(&actor_file, 150)).expect("config");
+    train(&moving, None, &mut Quiet).expect("fine-tune runs");
+    let after = checkpoint::load(&dir.join("last.safetensors")).expect("checkpoint");
+    assert_ne!(
+        after.agent.actor, start.agent.actor,
+        "the actor learns after the critic"
+    );
+
+    // An actor of another width is refused, naming both.
+    let mut narrow = start.agent.actor.clone();
+    narrow = skyherd_trainer::network::MultiTaskMlp::new(
+        skyherd_trainer::network::MlpShape::actor(narrow.inputs() - 5, 16, 1),
+        &mut <rand_chacha::ChaCha8Rng as rand::SeedableRng>::seed_from_u64(1),
+    );
+    let narrow_file = dir.join("narrow.actor.safetensors");
+    checkpoint::save_actor(&narrow_file, &narrow).expect("save");
+    let refused = TrainConfig::from_toml_str(&text(&narrow_file, 0)).expect("config");
+    let err = train(&refused, None, &mut Quiet).expect_err("a misfit actor");
+    assert!(err.to_string().contains("inputs"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
