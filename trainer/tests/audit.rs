@@ -1,5 +1,5 @@
 //! The reward audit on the committed configs: the shipped config's paper reward fails the gate
-//! (hovering beats every rule), the from-scratch config's audited reward passes it.
+//! (hovering beats every rule), the from-scratch configs' audited rewards pass it.
 
 use std::path::Path;
 
@@ -46,9 +46,15 @@ fn under_the_shipped_reward_hovering_beats_the_rules() {
 }
 
 #[test]
-fn the_from_scratch_config_passes_the_audit() {
+fn the_from_scratch_configs_pass_the_audit() {
+    for name in ["mtddpg-scratch.toml", "mtddpg-scratch2.toml"] {
+        passes(name);
+    }
+}
+
+fn passes(name: &str) {
     let rows = audit(
-        &config("mtddpg-scratch.toml"),
+        &config(name),
         &small_set(),
         &Candidate::hover_and_rules(),
         4,
@@ -56,7 +62,7 @@ fn the_from_scratch_config_passes_the_audit() {
     )
     .expect("the small set is valid");
     let report = gate(&rows);
-    assert!(report.passed, "{:?}", report.problems);
+    assert!(report.passed, "{name}: {:?}", report.problems);
     // Something succeeds in every scenario, so the gate had something to judge.
     for draw in small_set() {
         assert!(
