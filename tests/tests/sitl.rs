@@ -60,13 +60,20 @@ fn fly(label: &str, args: &[&str]) -> Run {
         .output()
         .expect("skyherd-sitl runs");
     let stderr = String::from_utf8_lossy(&output.stderr).into_owned();
+    // 0: the mission succeeded; 2: it ran and failed; anything else is a broken run.
     assert!(
-        output.status.success(),
+        matches!(output.status.code(), Some(0 | 2)),
         "skyherd-sitl failed: {}\n{stderr}",
         output.status
     );
     let text = std::fs::read_to_string(out.join("result.json")).expect("result.json written");
     let result: Value = serde_json::from_str(&text).expect("result.json parses");
+    assert_eq!(
+        output.status.code() == Some(0),
+        result["success"] == true,
+        "the exit status says what result.json says: {}",
+        output.status
+    );
     eprintln!("{label}: {result}");
     Run {
         result,
@@ -113,6 +120,19 @@ fn indoor_two_drones_drive_four_vehicles_to_the_goal_reproducibly() {
         "indoor-again",
         &["--scenario", "indoor", "--time-limit", "300"],
     );
+    // Each mission signs with a key of its own from the OS, readable by its owner only.
+    let keys = [&run, &again].map(|r| std::fs::read(r.out.join("mission.key")).expect("key"));
+    assert_eq!(keys[0].len(), 32);
+    assert_ne!(keys[0], keys[1], "two missions, two keys");
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        let mode = std::fs::metadata(run.out.join("mission.key"))
+            .expect("key")
+            .permissions()
+            .mode();
+        assert_eq!(mode & 0o777, 0o600, "mission.key mode {mode:o}");
+    }
     let misses = [r, &again.result].map(|r| r["lockstep_misses"].as_u64().unwrap_or(u64::MAX));
     if misses != [0, 0] {
         eprintln!("indoor: lockstep misses {misses:?} (a stalled machine): not comparing the runs");

@@ -309,10 +309,16 @@ impl MissionArgs {
             .as_deref()
             .map(|c| parse_floats::<2>(c, "--cut-uplink"))
             .transpose()?
-            .map(|[start, length]| UplinkCut {
-                start_s: f64::from(start),
-                duration_s: f64::from(length),
-            });
+            .map(|[start, length]| {
+                if start < 0.0 || length <= 0.0 {
+                    bail!("--cut-uplink needs START >= 0 and DURATION > 0 seconds, got {start},{length}");
+                }
+                Ok(UplinkCut {
+                    start_s: f64::from(start),
+                    duration_s: f64::from(length),
+                })
+            })
+            .transpose()?;
         Ok(config)
     }
 }

@@ -19,6 +19,27 @@ pub struct FaultConfig {
     pub cuts: Vec<(f64, f64)>,
 }
 
+impl FaultConfig {
+    /// The loss a probability, the latency and the cut windows finite and non-negative: on
+    /// failure, the setting and what was wrong.
+    pub fn validate(&self) -> Result<(), (&'static str, &'static str)> {
+        if !(0.0..=1.0).contains(&self.loss) {
+            return Err(("loss", "must be a probability in [0, 1]"));
+        }
+        if !(self.latency.is_finite() && (0.0..=60.0).contains(&self.latency)) {
+            return Err(("latency", "must be between 0 and 60 s"));
+        }
+        if self
+            .cuts
+            .iter()
+            .any(|&(a, b)| !(a.is_finite() && b.is_finite() && a >= 0.0 && b >= a))
+        {
+            return Err(("cuts", "every window needs 0 <= start <= end, both finite"));
+        }
+        Ok(())
+    }
+}
+
 /// The fate of one datagram.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Verdict {
@@ -67,7 +88,14 @@ impl FaultPlan {
             return Verdict::Cut;
         }
         // Draw for every datagram so that the stream of verdicts does not depend on cuts.
-        let lost = self.rng.random_bool(self.config.loss.clamp(0.0, 1.0));
+        // A loss that is not a probability (NaN) loses nothing rather than panicking; the
+        // configs that reach here have passed `FaultConfig::validate`.
+        let p = if (0.0..=1.0).contains(&self.config.loss) {
+            self.config.loss
+        } else {
+            0.0
+        };
+        let lost = self.rng.random_bool(p);
         if lost {
             self.stats.lost += 1;
             return Verdict::Lost;
@@ -175,6 +203,65 @@ impl FaultyUdp {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_fault_config_outside_its_ranges_is_refused_and_nan_never_panics() {
+        let ok = FaultConfig {
+            loss: 0.2,
+            latency: 0.2,
+            cuts: vec![(3.0, 8.0)],
+        };
+        assert_eq!(ok.validate(), Ok(()));
+        for (config, field) in [
+            (
+                FaultConfig {
+                    loss: f64::NAN,
+                    ..ok.clone()
+                },
+                "loss",
+            ),
+            (
+                FaultConfig {
+                    loss: 1.5,
+                    ..ok.clone()
+                },
+                "loss",
+            ),
+            (
+                FaultConfig {
+                    latency: -0.1,
+                    ..ok.clone()
+                },
+                "latency",
+            ),
+            (
+                FaultConfig {
+                    latency: f64::INFINITY,
+                    ..ok.clone()
+                },
+                "latency",
+            ),
+            (
+                FaultConfig {
+                    cuts: vec![(5.0, 1.0)],
+                    ..ok.clone()
+                },
+                "cuts",
+            ),
+            (
+                FaultConfig {
+                    cuts: vec![(f64::NAN, 1.0)],
+                    ..ok.clone()
+                },
+                "cuts",
+            ),
+        ] {
+            assert_eq!(config.validate().map_err(|e| e.0), Err(field), "{config:?}");
+            // A plan made from it anyway does not panic.
+            let mut plan = FaultPlan::new(config, 1);
+            let _ = plan.decide(1.0);
+        }
+    }
 
     #[test]
     fn loss_rate_latency_and_cuts() {

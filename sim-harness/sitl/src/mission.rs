@@ -127,6 +127,61 @@ pub enum SitlError {
     /// A socket failed.
     #[error("network: {0}")]
     Io(#[from] std::io::Error),
+    /// A setting is out of its range.
+    #[error("{field}: {reason}")]
+    Invalid {
+        /// The setting.
+        field: &'static str,
+        /// What was wrong.
+        reason: String,
+    },
+}
+
+impl SitlConfig {
+    /// Every setting in its range (NaN never is): the faults, the speed, the time limit, the
+    /// lost drone. [`SitlWorld::new`] refuses a config that fails this.
+    pub fn validate(&self) -> Result<(), SitlError> {
+        let bad = |field, reason: &str| {
+            Err(SitlError::Invalid {
+                field,
+                reason: reason.to_owned(),
+            })
+        };
+        self.faults
+            .validate()
+            .map_err(|(field, reason)| SitlError::Invalid {
+                field,
+                reason: reason.to_owned(),
+            })?;
+        if !(self.speed.is_finite() && self.speed >= 0.0) {
+            return bad(
+                "speed",
+                "must be a finite number >= 0 (0: as fast as possible)",
+            );
+        }
+        if !(self.time_limit_s.is_finite() && self.time_limit_s > 0.0) {
+            return bad("time limit", "must be a positive number of seconds");
+        }
+        if !(self.tick_s.is_finite() && self.tick_s > 0.0) {
+            return bad("tick", "must be a positive number of seconds");
+        }
+        if let Some((index, at)) = self.lose_drone {
+            let drones = self.scenario.herder_count();
+            if index >= drones {
+                return Err(SitlError::Invalid {
+                    field: "lost drone",
+                    reason: format!("index {index}, but the drones are 0..{drones}"),
+                });
+            }
+            if !(at.is_finite() && at >= 0.0) {
+                return bad(
+                    "lost drone",
+                    "the time must be a finite number of seconds >= 0",
+                );
+            }
+        }
+        Ok(())
+    }
 }
 
 /// How an episode ended.
@@ -189,6 +244,7 @@ impl SitlWorld {
     /// Spawns the episode (the scenario's spawn rules and per-episode boids noise) and binds one
     /// autopilot per drone on an ephemeral loopback port.
     pub fn new(config: SitlConfig) -> Result<Self, SitlError> {
+        config.validate()?;
         let mut env = Env::new(config.scenario.clone())?;
         let mut world = env.reset(config.seed).clone();
         world.dt = config.tick_s;
@@ -503,5 +559,36 @@ impl SitlWorld {
             }
             thread::sleep(Duration::from_micros(50));
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_config_out_of_range_is_refused_naming_the_setting() {
+        let ground: SocketAddr = "127.0.0.1:9".parse().expect("literal");
+        let ok = SitlConfig::new(Scenario::indoor(), 0, ground);
+        assert!(ok.validate().is_ok());
+        let field = |c: SitlConfig| match c.validate() {
+            Err(SitlError::Invalid { field, .. }) => field,
+            other => panic!("{other:?}"),
+        };
+        let mut c = ok.clone();
+        c.speed = f64::NAN;
+        assert_eq!(field(c), "speed");
+        let mut c = ok.clone();
+        c.lose_drone = Some((2, 5.0)); // the indoor preset flies drones 0 and 1
+        assert_eq!(field(c), "lost drone");
+        let mut c = ok.clone();
+        c.faults.loss = f64::NAN;
+        assert_eq!(field(c), "loss");
+        let mut c = ok.clone();
+        c.time_limit_s = 0.0;
+        assert_eq!(field(c), "time limit");
+        let mut c = ok;
+        c.speed = -1.0;
+        assert!(SitlWorld::new(c).is_err(), "the world refuses it too");
     }
 }

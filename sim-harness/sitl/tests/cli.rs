@@ -40,5 +40,29 @@ fn a_bad_fault_flag_is_refused() {
     let (ok, err) = sitl(&["--model", model, "--out", out, "--lose-drone", "one@ten"]);
     assert!(!ok);
     assert!(err.contains("--lose-drone"), "{err}");
+    // Out of range, or not a number at all: refused with the flag's name, before any process
+    // starts or any file is written.
+    for (flag, value) in [
+        ("--loss", "nan"),
+        ("--loss", "2"),
+        ("--latency-ms", "-1"),
+        ("--latency-ms", "inf"),
+        ("--speed", "nan"),
+        ("--speed", "-1"),
+        ("--lose-drone", "99@5"),
+        ("--lose-drone", "0@nan"),
+        ("--cut-uplink", "5"),
+        ("--cut-uplink", "3,-5"),
+    ] {
+        let arg = format!("{flag}={value}");
+        let (ok, err) = sitl(&["--scenario", "indoor", "--model", model, "--out", out, &arg]);
+        assert!(!ok, "{arg} accepted");
+        assert!(err.contains(flag), "{arg}: {err}");
+        assert!(!err.contains("panicked"), "{arg}: {err}");
+        assert!(
+            !std::path::Path::new(out).join("mission.key").exists(),
+            "{arg}: nothing is written"
+        );
+    }
     let _ = std::fs::remove_dir_all(out);
 }

@@ -12,7 +12,6 @@
 //! skyherd-sitl --scenario paper-drive --herders 4 --targets 16 --speed 0
 //! ```
 
-use std::fs::File;
 use std::io::{Read, Write};
 use std::net::{SocketAddr, UdpSocket};
 use std::path::{Path, PathBuf};
@@ -25,7 +24,7 @@ use skyherd_sim::{Scenario, World};
 use skyherd_sitl::FaultConfig;
 use skyherd_sitl::console::{MissionResult, MissionWatch, Stop};
 use skyherd_sitl::launch::{self, Guard, LaunchPlan};
-use skyherd_sitl::mission::{Ending, SitlConfig, SitlWorld};
+use skyherd_sitl::mission::{Ending, SitlConfig, SitlError, SitlWorld};
 
 #[derive(Parser, Debug)]
 #[command(
@@ -79,13 +78,19 @@ struct Cli {
     time_limit: f64,
 }
 
-fn main() -> Result<()> {
+/// The exit status of a mission that ran but did not succeed (1 is an error before or during
+/// the run): scripts can tell a failed mission from a broken one.
+const MISSION_FAILED: u8 = 2;
+
+fn main() -> Result<std::process::ExitCode> {
     let cli = Cli::parse();
     let (scenario, seed) = cli.scenario()?;
-    std::fs::create_dir_all(&cli.out).with_context(|| format!("creating {}", cli.out.display()))?;
-    let key = write_mission_key(&cli.out, seed)?;
     let ground_addr: SocketAddr = ([127, 0, 0, 1], free_udp_port()?).into();
-    let mut sitl = SitlWorld::new(cli.sitl_config(&scenario, seed, ground_addr)?)?;
+    // Every flag is checked before anything is written or started.
+    let config = cli.sitl_config(&scenario, seed, ground_addr)?;
+    std::fs::create_dir_all(&cli.out).with_context(|| format!("creating {}", cli.out.display()))?;
+    let key = write_mission_key(&cli.out)?;
+    let mut sitl = SitlWorld::new(config)?;
     let world = sitl.world().clone();
     let drones = world.herders.len();
     say(format!(
@@ -153,7 +158,11 @@ fn main() -> Result<()> {
     for p in plots {
         println!("  {:<13} {}", "plot", p.display());
     }
-    Ok(())
+    Ok(if result.success {
+        std::process::ExitCode::SUCCESS
+    } else {
+        std::process::ExitCode::from(MISSION_FAILED)
+    })
 }
 
 impl Cli {
@@ -195,6 +204,22 @@ impl Cli {
             bail!("--time-limit must be a positive number of seconds");
         }
         config.time_limit_s = self.time_limit;
+        if let Some(spec) = &self.cut_uplink {
+            // The ground applies it; checked here so that a bad value stops the mission before
+            // any process starts, with the flag's name.
+            let parts: Vec<f64> = spec
+                .split(',')
+                .map(|v| v.trim().parse::<f64>())
+                .collect::<Result<_, _>>()
+                .with_context(|| format!("--cut-uplink must be START,DURATION, got {spec:?}"))?;
+            match parts[..] {
+                [start, length]
+                    if start.is_finite() && length.is_finite() && start >= 0.0 && length > 0.0 => {}
+                _ => bail!(
+                    "--cut-uplink must be START,DURATION with START >= 0 and DURATION > 0 seconds, got {spec:?}"
+                ),
+            }
+        }
         if let Some(spec) = &self.lose_drone {
             let (index, at) = spec
                 .split_once('@')
@@ -207,6 +232,21 @@ impl Cli {
                 .with_context(|| format!("--lose-drone time in {spec:?}"))?;
             config.lose_drone = Some((index, at));
         }
+        config.validate().map_err(|e| {
+            let flag = match &e {
+                SitlError::Invalid { field: "loss", .. } => "--loss",
+                SitlError::Invalid {
+                    field: "latency", ..
+                } => "--latency-ms",
+                SitlError::Invalid { field: "speed", .. } => "--speed",
+                SitlError::Invalid {
+                    field: "lost drone",
+                    ..
+                } => "--lose-drone",
+                _ => "settings",
+            };
+            anyhow::anyhow!("{flag}: {e}")
+        })?;
         Ok(config)
     }
 }
@@ -220,17 +260,27 @@ fn free_udp_port() -> Result<u16> {
     Ok(UdpSocket::bind("127.0.0.1:0")?.local_addr()?.port())
 }
 
-/// A fresh signing key for this mission, shared by every uplink; returns its file.
-fn write_mission_key(out: &Path, seed: u64) -> Result<PathBuf> {
+/// A fresh signing key for this mission from the operating system's randomness, shared by
+/// every uplink; returns its file. The file is created anew (an old one, or a symlink in its
+/// place, is removed first, never followed), readable by its owner only.
+fn write_mission_key(out: &Path) -> Result<PathBuf> {
     let key_path = out.join("mission.key");
-    let key: [u8; 32] = std::array::from_fn(|i| {
-        (seed
-            .wrapping_mul(0x9E37_79B9_7F4A_7C15)
-            .rotate_left(i as u32 * 7)
-            >> 8) as u8
-            ^ (std::process::id() as u8).wrapping_add(i as u8)
-    });
-    File::create(&key_path)?.write_all(&key)?;
+    let mut key = [0u8; 32];
+    getrandom::fill(&mut key).map_err(|e| anyhow::anyhow!("no OS randomness for the key: {e}"))?;
+    match std::fs::remove_file(&key_path) {
+        Ok(()) => {}
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
+        Err(e) => return Err(e).with_context(|| format!("replacing {}", key_path.display())),
+    }
+    let mut options = std::fs::OpenOptions::new();
+    // create_new is O_CREAT | O_EXCL: it fails on anything already there, a symlink included.
+    options.write(true).create_new(true);
+    #[cfg(unix)]
+    std::os::unix::fs::OpenOptionsExt::mode(&mut options, 0o600);
+    options
+        .open(&key_path)
+        .and_then(|mut f| f.write_all(&key))
+        .with_context(|| format!("writing {}", key_path.display()))?;
     Ok(key_path)
 }
 
