@@ -28,11 +28,15 @@
 #![cfg_attr(not(feature = "std"), no_std)]
 
 #[cfg(feature = "std")]
+pub mod file;
+#[cfg(feature = "std")]
 pub mod float;
 pub mod format;
 #[cfg(feature = "std")]
 pub mod quantize;
 
+#[cfg(feature = "std")]
+pub use file::{MAX_MODEL_FILE_BYTES, ReadModelError, read_model_file};
 #[cfg(feature = "std")]
 pub use float::{ActorShape, Dense, FloatActor, SplitMix64};
 pub use format::{FormatError, LayerView, ModelView, decode};

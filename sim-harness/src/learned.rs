@@ -221,9 +221,12 @@ impl ModelPolicy {
     /// Loads and validates `path`. The bytes stay alive for the rest of the process (the
     /// zero-copy `Actor` borrows them); a run loads a handful of models at most.
     pub fn from_file(path: &Path) -> Result<Self, ModelPolicyError> {
-        let bytes = std::fs::read(path).map_err(|source| ModelPolicyError::Read {
+        let bytes = skyherd_model::read_model_file(path).map_err(|e| ModelPolicyError::Read {
             path: path.to_owned(),
-            source,
+            source: match e {
+                skyherd_model::ReadModelError::Io(e) => e,
+                too_large => std::io::Error::new(std::io::ErrorKind::InvalidData, too_large),
+            },
         })?;
         let name = path
             .file_stem()

@@ -66,7 +66,7 @@ fn main() -> ExitCode {
     }
     let mut ok = true;
     for path in files {
-        let bytes = match std::fs::read(path) {
+        let bytes = match skyherd_model::read_model_file(std::path::Path::new(path)) {
             Ok(b) => b,
             Err(e) => {
                 eprintln!("{path}: cannot read: {e}");

@@ -437,8 +437,21 @@ fn spawn_reader(
                 Err(MessageReadError::Io(e)) => {
                     match e.kind() {
                         io::ErrorKind::WouldBlock | io::ErrorKind::TimedOut => {}
-                        // Refused (nobody listening yet on a UDP peer), empty datagram, serial
-                        // hiccup: wait a little and keep reading.
+                        // An empty or truncated datagram is the sender's problem, not the
+                        // link's: drop it at once. Sleeping on it let a flood of zero-byte
+                        // datagrams slow the reader to 50 frames a second.
+                        io::ErrorKind::UnexpectedEof | io::ErrorKind::InvalidData => {
+                            debug!("{name}: dropped an empty or short datagram: {e}");
+                            if raw {
+                                if events.send(Event::GroundMalformed).is_err() {
+                                    return;
+                                }
+                            } else if events.send(Event::AutopilotMalformed).is_err() {
+                                return;
+                            }
+                        }
+                        // Refused (nobody listening yet on a UDP peer), serial hiccup: wait a
+                        // little and keep reading.
                         _ => {
                             debug!("{name}: read error: {e}");
                             thread::sleep(Duration::from_millis(20));

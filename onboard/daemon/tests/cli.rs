@@ -58,6 +58,25 @@ fn a_corrupt_model_file_is_refused_not_flown() {
     assert!(err.contains("not usable"), "{err}");
 }
 
+#[cfg(unix)]
+#[test]
+fn an_endless_model_file_is_refused_not_read_to_the_end() {
+    // /dev/zero never ends: the daemon reads at most the size cap, then says why it stopped.
+    let (ok, err) = run_with(&["--model", "/dev/zero", "--system-id", "1"]);
+    assert!(!ok);
+    assert!(
+        err.contains("/dev/zero") && err.contains("more than"),
+        "{err}"
+    );
+    let out = daemon()
+        .args(["self-test", "--model", "/dev/zero"])
+        .output()
+        .expect("the daemon starts");
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(err.contains("more than"), "{err}");
+}
+
 #[test]
 fn an_out_of_range_system_id_is_refused() {
     let model = concat!(env!("CARGO_MANIFEST_DIR"), "/../../models/mtddpg-v3.skym");

@@ -562,7 +562,8 @@ fn run_eval(args: EvalArgs) -> Result<()> {
     let float_actor = float_actor
         .map(|p| checkpoint::load_actor(&p))
         .transpose()?;
-    let bytes = std::fs::read(&model)?;
+    let bytes = skyherd_model::read_model_file(&model)
+        .map_err(|e| anyhow::anyhow!("{}: {e}", model.display()))?;
     let actor =
         Actor::from_bytes(&bytes).map_err(|e| anyhow::anyhow!("{}: {e:?}", model.display()))?;
     let scenarios: Vec<EvalScenario> = if scenarios.is_empty() {

@@ -88,8 +88,22 @@ enum FlavourArg {
     Ardupilot,
 }
 
+/// A model or key file, at most `skyherd_model::MAX_MODEL_FILE_BYTES` of it: a path such as
+/// `/dev/zero` is refused instead of filling memory.
 fn read(path: &Path, what: &str) -> Result<Vec<u8>> {
-    std::fs::read(path).with_context(|| format!("cannot read the {what} {}", path.display()))
+    use std::io::Read;
+    let limit = skyherd_model::MAX_MODEL_FILE_BYTES;
+    let mut bytes = Vec::new();
+    std::fs::File::open(path)
+        .and_then(|f| f.take(limit + 1).read_to_end(&mut bytes))
+        .with_context(|| format!("cannot read the {what} {}", path.display()))?;
+    if bytes.len() as u64 > limit {
+        bail!(
+            "the {what} {} holds more than {limit} bytes: not a {what}",
+            path.display()
+        );
+    }
+    Ok(bytes)
 }
 
 fn run(args: RunArgs) -> Result<()> {
