@@ -307,25 +307,34 @@ impl Scenario {
     pub fn validate(&self) -> Result<(), ScenarioError> {
         let bad =
             |field: &'static str, reason: String| Err(ScenarioError::Invalid { field, reason });
+        // Finite is not enough: 1e308 passes it and overflows a step (see
+        // `world::MAX_MAGNITUDE`).
+        let max = crate::world::MAX_MAGNITUDE;
         let pos = |field: &'static str, v: f64| {
-            if v.is_finite() && v > 0.0 {
+            if v.is_finite() && v > 0.0 && v <= max {
                 Ok(())
             } else {
-                bad(field, format!("must be finite and > 0, got {v}"))
+                bad(
+                    field,
+                    format!("must be finite, > 0 and <= {max:e}, got {v}"),
+                )
             }
         };
         let nonneg = |field: &'static str, v: f64| {
-            if v.is_finite() && v >= 0.0 {
+            if v.is_finite() && v >= 0.0 && v <= max {
                 Ok(())
             } else {
-                bad(field, format!("must be finite and >= 0, got {v}"))
+                bad(
+                    field,
+                    format!("must be finite, >= 0 and <= {max:e}, got {v}"),
+                )
             }
         };
         let finite = |field: &'static str, v: f64| {
-            if v.is_finite() {
+            if v.is_finite() && v.abs() <= max {
                 Ok(())
             } else {
-                bad(field, format!("must be finite, got {v}"))
+                bad(field, format!("must be finite and within {max:e}, got {v}"))
             }
         };
         const MAX_TARGETS: usize = 1 << 20;

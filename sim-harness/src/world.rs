@@ -215,7 +215,19 @@ fn invalid(field: &'static str, reason: impl Into<String>) -> WorldError {
     }
 }
 
+/// The largest magnitude any length, coordinate, speed or boids weight of a valid world may
+/// have: 1,000 km (or 10^6 in the weight's units). Far beyond any arena, and small enough that
+/// no arithmetic of a step overflows (a target at -1.7e308 m once made the separation grid
+/// index out of bounds).
+pub const MAX_MAGNITUDE: f64 = 1.0e6;
+
 fn check_finite_pos(field: &'static str, v: f64) -> Result<(), WorldError> {
+    if v > MAX_MAGNITUDE {
+        return Err(invalid(
+            field,
+            format!("must be at most {MAX_MAGNITUDE:e}, got {v}"),
+        ));
+    }
     if v.is_finite() && v > 0.0 {
         Ok(())
     } else {
@@ -224,6 +236,12 @@ fn check_finite_pos(field: &'static str, v: f64) -> Result<(), WorldError> {
 }
 
 fn check_finite_nonneg(field: &'static str, v: f64) -> Result<(), WorldError> {
+    if v > MAX_MAGNITUDE {
+        return Err(invalid(
+            field,
+            format!("must be at most {MAX_MAGNITUDE:e}, got {v}"),
+        ));
+    }
     if v.is_finite() && v >= 0.0 {
         Ok(())
     } else {
@@ -238,8 +256,12 @@ impl World {
         check_finite_pos("area.depth", self.area.depth)?;
         check_finite_nonneg("area.ceiling", self.area.ceiling)?;
         check_finite_pos("goal.radius", self.goal.radius)?;
-        if !self.goal.center.iter().all(|c| c.is_finite()) {
-            return Err(invalid("goal.center", "must be finite"));
+        let in_range = |c: &f64| c.is_finite() && c.abs() <= MAX_MAGNITUDE;
+        if !self.goal.center.iter().all(in_range) {
+            return Err(invalid(
+                "goal.center",
+                format!("must be finite, within {MAX_MAGNITUDE:e} m"),
+            ));
         }
         check_finite_nonneg("params.separation", self.params.separation)?;
         check_finite_nonneg("params.alignment", self.params.alignment)?;
@@ -270,19 +292,23 @@ impl World {
                 ),
             ));
         }
-        if !self.herders.iter().flatten().all(|c| c.is_finite()) {
-            return Err(invalid("herders", "coordinates must be finite"));
+        if !self.herders.iter().flatten().all(in_range) {
+            return Err(invalid(
+                "herders",
+                format!("coordinates must be finite, within {MAX_MAGNITUDE:e} m"),
+            ));
         }
-        if !self.targets.iter().flatten().all(|c| c.is_finite()) {
-            return Err(invalid("targets", "coordinates must be finite"));
+        if !self.targets.iter().flatten().all(in_range) {
+            return Err(invalid(
+                "targets",
+                format!("coordinates must be finite, within {MAX_MAGNITUDE:e} m"),
+            ));
         }
-        if !self
-            .target_velocities
-            .iter()
-            .flatten()
-            .all(|c| c.is_finite())
-        {
-            return Err(invalid("target_velocities", "must be finite"));
+        if !self.target_velocities.iter().flatten().all(in_range) {
+            return Err(invalid(
+                "target_velocities",
+                format!("must be finite, within {MAX_MAGNITUDE:e} m/s"),
+            ));
         }
         Ok(())
     }
@@ -458,8 +484,10 @@ fn separation_grid(targets: &[[f64; 2]], range: f64, scratch: &mut StepScratch) 
     let mut cell = range * (1.0 + 1e-9);
     let (mut nx, mut ny);
     loop {
-        nx = ((max_x - min_x) / cell) as usize + 1;
-        ny = ((max_y - min_y) / cell) as usize + 1;
+        // Saturating: a validated world keeps these small, and an unvalidated one must not
+        // wrap them to 0.
+        nx = (((max_x - min_x) / cell) as usize).saturating_add(1);
+        ny = (((max_y - min_y) / cell) as usize).saturating_add(1);
         if nx.saturating_mul(ny) <= max_cells {
             break;
         }
@@ -606,7 +634,7 @@ pub fn advance(
         scratch.new_velocity[i] = cap2(v, world.limits.target);
     }
     integrate_targets(world, &scratch.new_velocity);
-    world.step += 1;
+    world.step = world.step.saturating_add(1);
     Ok(())
 }
 
@@ -687,7 +715,7 @@ pub fn reference_step(world: &mut World, actions: &[[f64; 3]]) -> Result<(), Wor
         velocities.push(cap2(v, world.limits.target));
     }
     integrate_targets(world, &velocities);
-    world.step += 1;
+    world.step = world.step.saturating_add(1);
     Ok(())
 }
 
@@ -1063,6 +1091,40 @@ mod tests {
                 ..
             })
         ));
+    }
+
+    #[test]
+    fn finite_but_absurd_values_are_refused_and_never_panic_a_step() {
+        let field = |w: &World| match w.validate() {
+            Err(WorldError::Invalid { field, .. }) => field,
+            other => panic!("{other:?}"),
+        };
+        let mut w = world(
+            vec![[0.0; 3]],
+            vec![[1.0, 1.0], [2.0, 2.0]],
+            BoidsParams::PAPER,
+        );
+        w.targets[0][0] = -1.7e308;
+        assert_eq!(field(&w), "targets");
+        // Stepped anyway (a caller that skipped validation): no panic.
+        let mut scratch = StepScratch::with_capacity(2);
+        let _ = advance(&mut w, &[[0.0; 3]], &mut scratch);
+        let mut w = world(vec![[0.0; 3]], vec![[1.0, 1.0]], BoidsParams::PAPER);
+        w.params.separation = 1e308;
+        assert_eq!(field(&w), "params.separation");
+        let mut w = world(vec![[0.0; 3]], vec![[1.0, 1.0]], BoidsParams::PAPER);
+        w.herders[0][2] = 2e6;
+        assert_eq!(field(&w), "herders");
+        let mut w = world(vec![[0.0; 3]], vec![[1.0, 1.0]], BoidsParams::PAPER);
+        w.step = u64::MAX;
+        assert!(w.validate().is_ok());
+        let mut scratch = StepScratch::with_capacity(1);
+        let _ = advance(&mut w, &[[0.0; 3]], &mut scratch);
+        assert_eq!(
+            w.step,
+            u64::MAX,
+            "the step counter saturates, it does not wrap"
+        );
     }
 
     #[test]
