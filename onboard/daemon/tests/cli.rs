@@ -84,3 +84,18 @@ fn an_out_of_range_system_id_is_refused() {
     assert!(!ok);
     assert!(err.contains("1..=254"), "{err}");
 }
+
+#[test]
+fn without_a_key_the_daemon_refuses_to_fly_unless_told_it_is_a_bench_test() {
+    let model = concat!(env!("CARGO_MANIFEST_DIR"), "/../../models/mtddpg-v3.skym");
+    let (ok, err) = run_with(&["--model", model, "--system-id", "1"]);
+    assert!(!ok);
+    assert!(err.contains("--key") && err.contains("--insecure"), "{err}");
+    // --insecure gets past the key, so the next check speaks: an absurd control rate.
+    for rate in ["0", "nan", "1e9"] {
+        let arg = format!("--rate-hz={rate}");
+        let (ok, err) = run_with(&["--model", model, "--system-id", "1", "--insecure", &arg]);
+        assert!(!ok, "{arg} accepted");
+        assert!(err.contains("--rate-hz"), "{arg}: {err}");
+    }
+}

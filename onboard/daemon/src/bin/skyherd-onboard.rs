@@ -49,13 +49,18 @@ struct RunArgs {
     /// Autopilot link: udpout:HOST:PORT, udpin:HOST:PORT, serial:DEVICE:BAUD, tcpout:HOST:PORT.
     #[arg(long, default_value = "udpout:127.0.0.1:14540")]
     autopilot: String,
-    /// Ground link, same syntax.
-    #[arg(long, default_value = "udpin:0.0.0.0:14600")]
+    /// Ground link, same syntax. Loopback unless told otherwise: on a drone, name the radio's
+    /// address (for example udpin:0.0.0.0:14600) deliberately.
+    #[arg(long, default_value = "udpin:127.0.0.1:14600")]
     ground: String,
-    /// MAVLink 2 signing key for the ground link (32 raw bytes or 64 hex digits). Without it
-    /// unsigned uplink is accepted, which is for tests only.
+    /// MAVLink 2 signing key for the ground link (32 raw bytes or 64 hex digits). Required
+    /// unless --insecure.
     #[arg(long)]
     key: Option<PathBuf>,
+    /// Run without a key, accepting unsigned uplink from anyone who can reach the ground port:
+    /// for bench tests only.
+    #[arg(long)]
+    insecure: bool,
     /// This drone's MAVLink system id (its autopilot's).
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u8).range(1..=254))]
     system_id: u8,
@@ -114,8 +119,17 @@ fn run(args: RunArgs) -> Result<()> {
         Some(path) => {
             Some(parse_key(&read(path, "key file")?).with_context(|| path.display().to_string())?)
         }
-        None => None,
+        None if args.insecure => {
+            log::warn!("--insecure: unsigned uplink is accepted from anyone on the ground port");
+            None
+        }
+        None => bail!(
+            "no uplink signing key: pass --key FILE (skyherd-sitl makes one per mission), or --insecure for a bench test"
+        ),
     };
+    if !(args.rate_hz.is_finite() && args.rate_hz > 0.0 && args.rate_hz <= 1000.0) {
+        bail!("--rate-hz must be in (0, 1000], got {}", args.rate_hz);
+    }
     let flavour = match args.flavour {
         FlavourArg::Px4 => Flavour::Px4,
         FlavourArg::Ardupilot => Flavour::ArduPilot,
