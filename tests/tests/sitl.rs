@@ -147,6 +147,32 @@ fn indoor_two_drones_drive_four_vehicles_to_the_goal_reproducibly() {
     }
 }
 
+/// The README's real-time mode: the same mission, paced to the wall clock (it once stopped
+/// after the first scan, the ground's one-second idle limit shorter than the pre-roll).
+#[test]
+fn the_indoor_mission_flies_in_real_time_too() {
+    let run = fly(
+        "real-time",
+        &[
+            "--scenario",
+            "indoor",
+            "--speed",
+            "1",
+            "--time-limit",
+            "120",
+        ],
+    );
+    let r = &run.result;
+    assert_eq!(r["success"], true, "{r}\n{}", run.stderr);
+    let simulated = r["sim_time_s"].as_f64().expect("simulated time");
+    let wall = r["wall_time_s"].as_f64().expect("wall time");
+    assert!(
+        wall >= 0.9 * simulated,
+        "real time: {wall} s of wall for {simulated} s"
+    );
+    assert_ne!(r["ground"]["outcome"], "aborted", "{r}");
+}
+
 #[test]
 fn packet_loss_and_latency_do_not_breach_the_fence() {
     let run = fly(

@@ -28,6 +28,8 @@ pub struct LaunchPlan {
     pub out: PathBuf,
     /// Fault injection for the ground: `START,DURATION` of uplink cut.
     pub cut_uplink: Option<String>,
+    /// The ground stops this many wall seconds after the last scan and prints its summary.
+    pub ground_idle_timeout_s: f64,
 }
 
 /// The ground station's command: it listens for the fleet at `fleet`, and sends each drone's
@@ -72,8 +74,8 @@ pub fn ground_command(
         .arg(plan.out.join("ground.tlog"))
         .arg("--csv")
         .arg(plan.out.join("ground.csv"))
-        // The ground stops one wall second after the last scan and prints its summary.
-        .args(["--idle-timeout", "1"])
+        .arg("--idle-timeout")
+        .arg(plan.ground_idle_timeout_s.to_string())
         .stdout(Stdio::piped())
         .stderr(Stdio::inherit());
     if let Some(cut) = &plan.cut_uplink {

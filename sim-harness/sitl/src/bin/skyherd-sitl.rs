@@ -114,6 +114,13 @@ fn main() -> Result<std::process::ExitCode> {
         key,
         out: cli.out.clone(),
         cut_uplink: cli.cut_uplink.clone(),
+        // As fast as possible, scans come every few milliseconds and a silent second means the
+        // simulation is over; in real time (or slower) the pre-roll alone can take a second.
+        ground_idle_timeout_s: if cli.speed > 0.0 {
+            (3.0 / cli.speed).max(1.0)
+        } else {
+            1.0
+        },
     };
     let uplink_ports: Vec<u16> = (0..drones)
         .map(|_| free_udp_port())
