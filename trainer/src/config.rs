@@ -352,6 +352,12 @@ pub struct RewardConfig {
     pub kind: RewardKind,
     /// The weights of the `audited` reward.
     pub audited: AuditedReward,
+    /// Driving's own weights, in place of `audited` for that task (a whole set: fields left
+    /// out take `AuditedReward`'s defaults, not `audited`'s). The critic has a head per task,
+    /// so each task's values may have a scale of their own.
+    pub audited_driving: Option<AuditedReward>,
+    /// Collecting's own weights, likewise.
+    pub audited_collecting: Option<AuditedReward>,
 }
 
 impl Default for RewardConfig {
@@ -362,7 +368,20 @@ impl Default for RewardConfig {
             flight_scale: 0.1,
             kind: RewardKind::Paper,
             audited: AuditedReward::default(),
+            audited_driving: None,
+            audited_collecting: None,
         }
+    }
+}
+
+impl RewardConfig {
+    /// The `audited` weights that `task` trains with.
+    pub fn audited_for(&self, task: skyherd_model::Task) -> &AuditedReward {
+        let own = match task {
+            skyherd_model::Task::Driving => self.audited_driving.as_ref(),
+            skyherd_model::Task::Collecting => self.audited_collecting.as_ref(),
+        };
+        own.unwrap_or(&self.audited)
     }
 }
 

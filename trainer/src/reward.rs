@@ -160,6 +160,7 @@ pub struct LearnerReward {
     max_speed: f64,
     potential: f64,
     approach: Vec<f64>,
+    weights: AuditedReward,
 }
 
 impl LearnerReward {
@@ -172,6 +173,7 @@ impl LearnerReward {
             gamma,
             potential: 0.0,
             approach: Vec::new(),
+            weights: config.audited_for(scenario.task).clone(),
         }
     }
 
@@ -203,7 +205,7 @@ impl LearnerReward {
                 out.resize(velocities.len(), r as f32);
             }
             RewardKind::Audited => {
-                let a = &self.config.audited;
+                let a = &self.weights;
                 let (next, discount) = match a.shaping_form {
                     ShapingForm::Potential if outcome.terminated => (0.0, self.gamma),
                     ShapingForm::Potential => (potential(after), self.gamma),
@@ -386,6 +388,28 @@ mod tests {
         // (With a discount, standing far off also earns `(1 - gamma) |Phi|` a step, so the
         // comparison is between the two herders, not against zero.)
         assert!(sums[0] > sums[1] + 1.0, "{sums:?}");
+    }
+
+    #[test]
+    fn a_task_may_have_weights_of_its_own() {
+        let mut config = audited(0.0, 0.5);
+        let mut driving = config.audited.clone();
+        driving.flight_cost = 0.0;
+        config.audited_driving = Some(driving);
+        let v_max = scenario().limits.herder;
+        for (task, expected) in [(Task::Driving, 0.0), (Task::Collecting, -0.5)] {
+            let mut s = scenario();
+            s.task = task;
+            let mut env = Env::new(s.clone()).unwrap();
+            let mut reward = LearnerReward::new(&config, 0.99, &s);
+            env.reset(1);
+            reward.start(env.world());
+            let velocities = [[v_max, 0.0, 0.0], [0.0; 3]];
+            let out = env.step(&velocities).unwrap();
+            let mut r = Vec::new();
+            reward.step(&out, env.world(), &velocities, &mut r);
+            assert!((f64::from(r[0]) - expected).abs() < 1e-6, "{task:?}: {r:?}");
+        }
     }
 
     #[test]
