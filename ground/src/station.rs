@@ -301,6 +301,8 @@ pub struct GroundStation {
     herders: Vec<[f32; 3]>,
     cut_reported: bool,
     uplink_frames_sent: u64,
+    /// When each drone's onboard daemon was last heard on its uplink (mission clock).
+    daemon_heard: BTreeMap<u8, f64>,
 }
 
 impl GroundStation {
@@ -331,8 +333,18 @@ impl GroundStation {
             scans: 0,
             cut_reported: false,
             uplink_frames_sent: 0,
+            daemon_heard: BTreeMap::new(),
             config,
         })
+    }
+
+    /// A HEARTBEAT from drone `system_id`'s onboard daemon on its uplink link, at mission time
+    /// `now`. Once a daemon has been heard, its silence counts as the drone's: a drone whose
+    /// autopilot still reports but whose daemon died cannot herd, so it is lost after
+    /// `lost_after_s` like one that fell silent altogether.
+    pub fn daemon_heard(&mut self, system_id: u8, now: f64) {
+        let at = self.daemon_heard.entry(system_id).or_insert(now);
+        *at = at.max(now);
     }
 
     /// The configuration.
@@ -392,9 +404,20 @@ impl GroundStation {
             }
         }
 
+        // A drone is only as recent as its daemon, once that has spoken.
+        let drones: Vec<DroneReport> = drones
+            .iter()
+            .map(|d| match self.daemon_heard.get(&d.system_id) {
+                Some(&daemon) => DroneReport {
+                    last_heard: d.last_heard.min(daemon),
+                    ..*d
+                },
+                None => *d,
+            })
+            .collect();
         let plan = &self.config.plan;
         let (task, goal, radius) = (plan.task, plan.goal, plan.goal_radius);
-        match self.mission.update(now, drones, &targets) {
+        match self.mission.update(now, &drones, &targets) {
             Some(MissionStep::Start) => {
                 events.push(StationEvent::Started { at: now });
                 self.command_frames =
@@ -697,6 +720,31 @@ mod tests {
         );
         assert_eq!(pair.summary().lost_drones, vec![1]);
         assert_eq!(pair.summary().outcome, "unfinished");
+    }
+
+    #[test]
+    fn a_dead_daemon_is_a_lost_drone_though_its_autopilot_still_reports() {
+        let mut pair = station(vec![1, 2]);
+        for k in 0..80 {
+            let t = f64::from(k) * 0.1;
+            // Both autopilots report every scan; drone 1's daemon falls silent after 1 s,
+            // drone 2's keeps its heartbeat. A daemon never heard (none here) changes nothing.
+            if t <= 1.0 {
+                pair.daemon_heard(1, t);
+            }
+            pair.daemon_heard(2, t);
+            let both = [drone(1, [1.0, 1.0, 1.0], t), drone(2, [2.0, 1.0, 1.0], t)];
+            pair.on_scan(&scan(t, &[[3.0, 3.0]]), &both).unwrap();
+        }
+        assert_eq!(pair.summary().lost_drones, vec![1]);
+        // Without daemon heartbeats at all, both autopilots reporting keep both drones.
+        let mut quiet = station(vec![1, 2]);
+        for k in 0..80 {
+            let t = f64::from(k) * 0.1;
+            let both = [drone(1, [1.0, 1.0, 1.0], t), drone(2, [2.0, 1.0, 1.0], t)];
+            quiet.on_scan(&scan(t, &[[3.0, 3.0]]), &both).unwrap();
+        }
+        assert!(quiet.summary().lost_drones.is_empty());
     }
 
     #[test]

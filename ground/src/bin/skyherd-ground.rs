@@ -345,10 +345,15 @@ fn drain_uplinks(
             .poll(now, Duration::ZERO)
             .with_context(|| format!("uplink from drone {id}"))?
         {
-            if let MavMessage::STATUSTEXT(text) = &frame.message
-                && let Some(line) = station.drone_said(*id, text.text.to_str().unwrap_or("?"))
-            {
-                say(line);
+            match &frame.message {
+                MavMessage::STATUSTEXT(text) => {
+                    if let Some(line) = station.drone_said(*id, text.text.to_str().unwrap_or("?")) {
+                        say(line);
+                    }
+                }
+                // The daemon's own heartbeat: its silence is the drone's (a dead daemon).
+                MavMessage::HEARTBEAT(_) => station.daemon_heard(*id, now),
+                _ => {}
             }
         }
         link.tick(now)?;
