@@ -138,12 +138,24 @@ pub enum StationEvent {
         /// Mission clock, s.
         at: f64,
     },
+    /// A scan's time stamp went backwards or jumped further than a scan can: the mission
+    /// clock moved on by one scan period instead (reported for the first such scan only).
+    ClockJump {
+        /// Mission clock, s.
+        at: f64,
+        /// The scan's own time stamp, s.
+        stamped: f64,
+    },
 }
 
 impl fmt::Display for StationEvent {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match *self {
             Self::Started { at } => write!(f, "t={at:.1}s every drone heard, starting the task"),
+            Self::ClockJump { at, stamped } => write!(
+                f,
+                "t={at:.1}s a scan stamped {stamped:.1} s: not a step a sensor makes, the mission clock moves one scan period (further jumps are counted)"
+            ),
             Self::Ended {
                 at,
                 phase: Phase::Complete { started_at, .. },
@@ -255,6 +267,8 @@ pub struct StationSummary {
     pub lost_drones: Vec<u8>,
     /// Frames sent up to the drones.
     pub uplink_frames_sent: u64,
+    /// Scans whose time stamp went backwards or jumped (see [`StationEvent::ClockJump`]).
+    pub clock_jumps: u64,
 }
 
 /// Relays the drones' status texts to the console, debounced: a drone's status is reported
@@ -303,7 +317,17 @@ pub struct GroundStation {
     uplink_frames_sent: u64,
     /// When each drone's onboard daemon was last heard on its uplink (mission clock).
     daemon_heard: BTreeMap<u8, f64>,
+    /// The mission clock, s: advanced by each scan's step, bounded (see [`MAX_SCAN_STEP_S`]).
+    clock: f64,
+    clock_jumps: u64,
 }
+
+/// The largest step between two scans' time stamps that moves the mission clock by itself:
+/// ten scan periods, and at least 1 s. A longer step (a forged stamp 10^6 s ahead, say), or
+/// one backwards, moves it by one scan period instead.
+pub const MAX_SCAN_STEP_PERIODS: f64 = 10.0;
+/// See [`MAX_SCAN_STEP_PERIODS`].
+pub const MAX_SCAN_STEP_S: f64 = 1.0;
 
 impl GroundStation {
     /// A station waiting for its fleet.
@@ -334,8 +358,15 @@ impl GroundStation {
             cut_reported: false,
             uplink_frames_sent: 0,
             daemon_heard: BTreeMap::new(),
+            clock: 0.0,
+            clock_jumps: 0,
             config,
         })
+    }
+
+    /// The mission clock, s: the first scan's time stamp plus the bounded steps since.
+    pub fn now(&self) -> f64 {
+        self.clock
     }
 
     /// A HEARTBEAT from drone `system_id`'s onboard daemon on its uplink link, at mission time
@@ -387,9 +418,33 @@ impl GroundStation {
         let mut events = Vec::new();
         let mut uplink = Vec::new();
         self.scans += 1;
-        let dt = self.last_scan.map_or(FIRST_SCAN_DT_S, |t| scan.time_s - t);
+        let max_step = (MAX_SCAN_STEP_PERIODS * self.config.scan_period_s).max(MAX_SCAN_STEP_S);
+        let dt = match self.last_scan {
+            None => {
+                self.clock = scan.time_s;
+                FIRST_SCAN_DT_S
+            }
+            Some(t) => {
+                let step = scan.time_s - t;
+                if step > 0.0 && step <= max_step {
+                    self.clock += step;
+                    step
+                } else {
+                    // Not obeyed: the clock moves one period, and the tracker one period.
+                    self.clock += self.config.scan_period_s;
+                    self.clock_jumps += 1;
+                    if self.clock_jumps == 1 {
+                        events.push(StationEvent::ClockJump {
+                            at: self.clock,
+                            stamped: scan.time_s,
+                        });
+                    }
+                    self.config.scan_period_s
+                }
+            }
+        };
         self.last_scan = Some(scan.time_s);
-        let now = scan.time_s;
+        let now = self.clock;
         if dt > 0.0 {
             self.tracker.update(dt, &scan.detections)?;
         }
@@ -507,6 +562,7 @@ impl GroundStation {
             tracks: self.tracker.confirmed().count(),
             lost_drones: self.mission.lost().to_vec(),
             uplink_frames_sent: self.uplink_frames_sent,
+            clock_jumps: self.clock_jumps,
         }
     }
 }
@@ -745,6 +801,37 @@ mod tests {
             quiet.on_scan(&scan(t, &[[3.0, 3.0]]), &both).unwrap();
         }
         assert!(quiet.summary().lost_drones.is_empty());
+    }
+
+    #[test]
+    fn a_forged_scan_stamp_does_not_drag_the_mission_clock() {
+        let mut pair = station(vec![1, 2]);
+        let mut jumps = Vec::new();
+        for k in 0..40 {
+            let t = f64::from(k) * 0.1;
+            // Scan 20 carries a stamp 10^6 s ahead (the attack that once made the ground
+            // declare every drone lost); the real scans go on after it.
+            let stamp = if k == 20 { 1.0e6 } else { t };
+            let both = [drone(1, [1.0, 1.0, 1.0], t), drone(2, [2.0, 1.0, 1.0], t)];
+            let r = pair.on_scan(&scan(stamp, &[[3.0, 3.0]]), &both).unwrap();
+            jumps.extend(
+                r.events
+                    .iter()
+                    .filter(|e| matches!(e, StationEvent::ClockJump { .. }))
+                    .cloned(),
+            );
+            assert!(pair.now() < 5.0, "scan {k}: clock {}", pair.now());
+        }
+        // Reported once; counted twice (the jump ahead, and the step back after it).
+        assert_eq!(jumps.len(), 1, "{jumps:?}");
+        assert_eq!(pair.summary().clock_jumps, 2);
+        assert!(
+            pair.summary().lost_drones.is_empty(),
+            "no drone lost to a forged clock"
+        );
+        assert_ne!(pair.summary().outcome, "aborted");
+        // Each bounded step stood in for one period, so the clock is where the scans are.
+        assert!((pair.now() - 3.9).abs() < 1e-6, "{}", pair.now());
     }
 
     #[test]

@@ -200,6 +200,7 @@ impl Links {
     fn fly(&mut self, station: &mut GroundStation, args: &MissionArgs) -> Result<bool> {
         let mut now = 0.0;
         let mut last_scan_wall = Instant::now();
+        let mut last_flush = Instant::now();
         loop {
             let mut scan = None;
             for frame in self.fleet.poll(now, Duration::from_millis(5))? {
@@ -228,9 +229,10 @@ impl Links {
                 continue;
             };
             last_scan_wall = Instant::now();
-            now = scan.time_s;
             let drones = drone_reports(self.fleet.fleet(), station.config().drones());
             let reply = station.on_scan(&scan, &drones)?;
+            // The station's clock, not the scan's stamp: a forged or broken stamp is bounded.
+            now = station.now();
             reply.events.iter().for_each(|e| say(e.to_string()));
             for (id, frames) in &reply.uplink {
                 send_up(&mut self.uplinks, *id, frames)?;
@@ -241,6 +243,15 @@ impl Links {
                 .send_to(station.config().sensor_system_id, &reply.scan_ack);
             if let Some(w) = &mut self.csv {
                 writeln!(w, "{}", reply.row.csv())?;
+            }
+            // At least once a second, so that a killed ground leaves its CSV and .tlog readable
+            // up to then.
+            if last_flush.elapsed() >= Duration::from_secs(1) {
+                if let Some(w) = &mut self.csv {
+                    w.flush()?;
+                }
+                self.fleet.flush_log()?;
+                last_flush = Instant::now();
             }
             if reply.finished {
                 return Ok(false);
