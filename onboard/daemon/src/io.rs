@@ -942,6 +942,44 @@ mod tests {
     }
 
     #[test]
+    fn every_empty_datagram_is_counted_as_malformed_and_the_next_frame_still_arrives() {
+        // The reader once slept 20 ms on each empty datagram without counting it: a flood of
+        // them slowed the uplink to 50 frames a second, unseen.
+        let (link, local) = open_link("ground", "udpin:127.0.0.1:0").expect("a loopback link");
+        let local = local.expect("a UDP link has an address");
+        let (events, heard) = mpsc::channel();
+        let stop = Arc::new(AtomicBool::new(false));
+        spawn_reader("ground", Arc::new(link), true, events, stop.clone());
+        let attacker = UdpSocket::bind("127.0.0.1:0").expect("socket");
+        for _ in 0..100 {
+            attacker.send_to(&[], local).expect("send");
+        }
+        let MAVLinkMessageRaw::V2(frame) = signed_by(KEY) else {
+            panic!("the gate seals MAVLink 2");
+        };
+        attacker.send_to(frame.raw_bytes(), local).expect("send");
+        let mut malformed = 0;
+        let deadline = std::time::Instant::now() + Duration::from_secs(20);
+        loop {
+            let left = deadline.saturating_duration_since(std::time::Instant::now());
+            match heard.recv_timeout(left) {
+                Ok(Event::GroundMalformed) => malformed += 1,
+                Ok(Event::Ground(raw)) => {
+                    let MAVLinkMessageRaw::V2(raw) = *raw else {
+                        panic!("a MAVLink 2 frame was sent");
+                    };
+                    assert_eq!(raw.raw_bytes(), frame.raw_bytes());
+                    break;
+                }
+                Ok(_) => {}
+                Err(e) => panic!("the frame after the flood never came ({malformed} counted): {e}"),
+            }
+        }
+        stop.store(true, Ordering::Relaxed);
+        assert_eq!(malformed, 100, "each empty datagram counted once");
+    }
+
+    #[test]
     fn an_unknown_tunnel_payload_type_is_malformed_not_a_panic() {
         let mut gate = UplinkGate::new(None);
         let MAVLinkMessageRaw::V2(mut raw) = gate.seal(header(), &tunnel()) else {
