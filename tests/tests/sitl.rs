@@ -173,6 +173,74 @@ fn the_indoor_mission_flies_in_real_time_too() {
     assert_ne!(r["ground"]["outcome"], "aborted", "{r}");
 }
 
+/// A SIGTERM to `skyherd-sitl` mid-mission leaves no ground and no daemon behind (they once
+/// ran on, reparented to init).
+#[cfg(target_os = "linux")]
+#[test]
+fn a_terminated_sitl_leaves_no_process_behind() {
+    let _turn = ONE_MISSION_AT_A_TIME
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
+    let out = std::env::temp_dir().join(format!("skyherd-e2e-sigterm-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    let mut sitl = Command::new(binary("skyherd-sitl"))
+        .current_dir(repo())
+        .args([
+            "--model",
+            "models/mtddpg-v3.skym",
+            "--scenario",
+            "indoor",
+            "--speed",
+            "1",
+        ])
+        .arg("--out")
+        .arg(&out)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .expect("skyherd-sitl starts");
+    // Children that mention our output folder on their command line: the ground and daemons.
+    let children = || -> Vec<u32> {
+        let marker = out.to_string_lossy().into_owned();
+        std::fs::read_dir("/proc")
+            .into_iter()
+            .flatten()
+            .flatten()
+            .filter_map(|e| e.file_name().to_str()?.parse::<u32>().ok())
+            .filter(|&pid| pid != sitl.id())
+            .filter(|pid| {
+                std::fs::read(format!("/proc/{pid}/cmdline"))
+                    .map(|c| String::from_utf8_lossy(&c).contains(&marker))
+                    .unwrap_or(false)
+            })
+            .collect()
+    };
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(60);
+    while children().len() < 3 {
+        assert!(
+            std::time::Instant::now() < deadline,
+            "the mission never started its processes"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(100));
+    }
+    let status = Command::new("kill")
+        .args(["-TERM", &sitl.id().to_string()])
+        .status()
+        .expect("kill runs");
+    assert!(status.success());
+    sitl.wait().expect("skyherd-sitl exits");
+    let deadline = std::time::Instant::now() + std::time::Duration::from_secs(10);
+    while !children().is_empty() {
+        assert!(
+            std::time::Instant::now() < deadline,
+            "left behind: {:?}",
+            children()
+        );
+        std::thread::sleep(std::time::Duration::from_millis(100));
+    }
+    let _ = std::fs::remove_dir_all(&out);
+}
+
 #[test]
 fn packet_loss_and_latency_do_not_breach_the_fence() {
     let run = fly(

@@ -160,8 +160,31 @@ impl Drop for Guard {
 /// # Errors
 /// When the program cannot be started.
 pub fn spawn(mut command: Command) -> io::Result<Guard> {
+    die_with_parent(&mut command);
     command.spawn().map(|child| Guard(Some(child)))
 }
+
+/// On Linux, the child is killed when the process that started it dies, however it dies (a
+/// SIGTERM or SIGKILL runs no destructor, so the [`Guard`] alone would leave the ground and the
+/// daemons running, reparented to init).
+#[cfg(target_os = "linux")]
+fn die_with_parent(command: &mut Command) {
+    use std::os::unix::process::CommandExt;
+    // SAFETY: the closure runs in the forked child before exec and calls only prctl(2), which
+    // is async-signal-safe and touches no memory shared with the parent.
+    #[allow(unsafe_code)]
+    unsafe {
+        command.pre_exec(|| {
+            if libc::prctl(libc::PR_SET_PDEATHSIG, libc::SIGKILL) == -1 {
+                return Err(io::Error::last_os_error());
+            }
+            Ok(())
+        });
+    }
+}
+
+#[cfg(not(target_os = "linux"))]
+fn die_with_parent(_: &mut Command) {}
 
 /// `name` beside the running program (the workspace's binaries share one folder).
 ///
