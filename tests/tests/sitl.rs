@@ -200,6 +200,7 @@ fn a_terminated_sitl_leaves_no_process_behind() {
         .spawn()
         .expect("skyherd-sitl starts");
     // Children that mention our output folder on their command line: the ground and daemons.
+    let sitl_pid = sitl.id();
     let children = || -> Vec<u32> {
         let marker = out.to_string_lossy().into_owned();
         std::fs::read_dir("/proc")
@@ -207,7 +208,7 @@ fn a_terminated_sitl_leaves_no_process_behind() {
             .flatten()
             .flatten()
             .filter_map(|e| e.file_name().to_str()?.parse::<u32>().ok())
-            .filter(|&pid| pid != sitl.id())
+            .filter(|&pid| pid != sitl_pid)
             .filter(|pid| {
                 std::fs::read(format!("/proc/{pid}/cmdline"))
                     .map(|c| String::from_utf8_lossy(&c).contains(&marker))
@@ -224,7 +225,7 @@ fn a_terminated_sitl_leaves_no_process_behind() {
         std::thread::sleep(std::time::Duration::from_millis(100));
     }
     let status = Command::new("kill")
-        .args(["-TERM", &sitl.id().to_string()])
+        .args(["-TERM", &sitl_pid.to_string()])
         .status()
         .expect("kill runs");
     assert!(status.success());
