@@ -290,7 +290,17 @@ fn link_config(key: &Option<SigningKey>, link_id: u8) -> LinkConfig {
 
 impl MissionArgs {
     fn drone_addresses(&self) -> Result<Vec<(u8, String)>> {
-        self.drones.iter().map(|d| parse_drone(d)).collect()
+        let drones: Vec<(u8, String)> = self
+            .drones
+            .iter()
+            .map(|d| parse_drone(d))
+            .collect::<Result<_>>()?;
+        for (i, (id, _)) in drones.iter().enumerate() {
+            if drones[..i].iter().any(|(other, _)| other == id) {
+                bail!("--drone system id {id} is given twice: each drone needs its own");
+            }
+        }
+        Ok(drones)
     }
 
     fn station_config(&self) -> Result<StationConfig> {
@@ -298,6 +308,28 @@ impl MissionArgs {
         let area: [f32; 3] = parse_floats(&self.area, "--area")?;
         if !(self.goal_radius > 0.0 && self.max_speed > 0.0 && area.iter().all(|&a| a > 0.0)) {
             bail!("--goal-radius, --max-speed and --area must be positive");
+        }
+        if !(self.goal_radius.is_finite() && self.max_speed.is_finite()) {
+            bail!("--goal-radius and --max-speed must be finite");
+        }
+        if goal[0] < 0.0 || goal[1] < 0.0 || goal[0] > area[0] || goal[1] > area[1] {
+            bail!(
+                "--goal {},{} lies outside the area 0..{} x 0..{}",
+                goal[0],
+                goal[1],
+                area[0],
+                area[1]
+            );
+        }
+        for (flag, v) in [
+            ("--time-limit", self.time_limit),
+            ("--scan-period", self.scan_period),
+            ("--idle-timeout", self.idle_timeout),
+            ("--measurement-std", self.measurement_std),
+        ] {
+            if !(v.is_finite() && v > 0.0) {
+                bail!("{flag} must be a finite number above 0, got {v}");
+            }
         }
         let task = match self.task {
             TaskArg::Driving => Task::Driving,
