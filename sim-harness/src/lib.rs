@@ -1,5 +1,6 @@
 #![doc = include_str!("../README.md")]
 pub mod baseline;
+pub mod dynamics;
 pub mod env;
 pub mod eval;
 pub mod learned;

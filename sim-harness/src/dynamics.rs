@@ -1,0 +1,519 @@
+//! How a multicopter follows a velocity command: a pure model of the autopilot's velocity
+//! control and the airframe, and the wind that pushes it.
+//!
+//! Frame and units: the simulator's (x east, y north, z **up**), metres, m/s, m/s^2, m/s^3,
+//! seconds. Everything takes explicit state and a time step; nothing reads a clock.
+//!
+//! # The model
+//! Each step of `dt`:
+//! 1. The command is clamped to the speed limits: horizontal norm `max_speed_horizontal`,
+//!    vertical `[-max_speed_down, max_speed_up]`.
+//! 2. The controller asks for the acceleration that closes the velocity error in `time_constant`
+//!    seconds (a first-order lag), clamped to `max_accel_horizontal` (norm) and
+//!    `[-max_accel_down, max_accel_up]`, then rate-limited by `max_jerk` (norm of the change per
+//!    second), as PX4's jerk-limited trajectory shapes its setpoints.
+//! 3. The wind adds `drag * wind`, after the limits: the controller is taken to cancel the
+//!    airframe's own drag in still air, and what the wind adds is the disturbance its lag lets
+//!    through (a steady wind `w` leaves a drift of `time_constant * drag * w`; a gust can push
+//!    a drone beyond what its controller would ask).
+//! 4. Velocity and position integrate (semi-implicit Euler); a drone on the ground (`z <= 0`)
+//!    stays there and loses its downward velocity.
+//!
+//! [`DynamicsLimits::px4`] carries PX4's defaults, from its parameter definitions
+//! (`src/modules/mc_pos_control/*_params.yaml` in PX4-Autopilot):
+//!
+//! | field | PX4 parameter | default |
+//! |---|---|---|
+//! | `max_accel_horizontal` | `MPC_ACC_HOR` (multicopter_autonomous_params) | 3.0 m/s^2 |
+//! | `max_accel_up` | `MPC_ACC_UP_MAX` (multicopter_altitude_mode_params) | 4.0 m/s^2 |
+//! | `max_accel_down` | `MPC_ACC_DOWN_MAX` (multicopter_altitude_mode_params) | 3.0 m/s^2 |
+//! | `max_jerk` | `MPC_JERK_AUTO` (multicopter_autonomous_params) | 4.0 m/s^3 |
+//! | `max_speed_horizontal` | `MPC_XY_VEL_MAX` (multicopter_position_control_limits_params) | 12.0 m/s |
+//! | `max_speed_up` | `MPC_Z_VEL_MAX_UP` (same file) | 3.0 m/s |
+//! | `max_speed_down` | `MPC_Z_VEL_MAX_DN` (same file) | 1.5 m/s |
+//! | `takeoff_speed` | `MPC_TKO_SPEED` (multicopter_takeoff_land_params) | 1.5 m/s |
+//! | `land_speed` | `MPC_LAND_SPEED` (same file) | 0.7 m/s |
+//!
+//! The time constant (0.3 s) and the drag (0.2 /s) are not PX4 parameters: they stand for the
+//! velocity loop's tracking lag and a small quadrotor's linear drag.
+//!
+//! ```
+//! use skyherd_sim::dynamics::{DynamicsLimits, Multicopter};
+//! let limits = DynamicsLimits::px4();
+//! let mut drone = Multicopter::hovering_at([0.0, 0.0, 2.0]);
+//! // Asked for 5 m/s east from a hover, a drone does not get there in one step.
+//! drone.step([5.0, 0.0, 0.0], [0.0; 3], &limits, 0.1);
+//! assert!(drone.velocity[0] > 0.0 && drone.velocity[0] < 0.5);
+//! for _ in 0..100 {
+//!     drone.step([5.0, 0.0, 0.0], [0.0; 3], &limits, 0.1);
+//! }
+//! assert!((drone.velocity[0] - 5.0).abs() < 0.05);
+//! ```
+
+use rand::Rng;
+use rand_distr::{Distribution, StandardNormal};
+use serde::{Deserialize, Serialize};
+
+/// What limits a multicopter's motion. Metres, seconds.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DynamicsLimits {
+    /// Largest horizontal acceleration the controller asks for, m/s^2.
+    pub max_accel_horizontal: f64,
+    /// Largest upward acceleration, m/s^2.
+    pub max_accel_up: f64,
+    /// Largest downward acceleration, m/s^2.
+    pub max_accel_down: f64,
+    /// Largest rate of change of the asked acceleration (norm), m/s^3.
+    pub max_jerk: f64,
+    /// Horizontal speed limit, m/s.
+    pub max_speed_horizontal: f64,
+    /// Climb rate limit, m/s.
+    pub max_speed_up: f64,
+    /// Descent rate limit, m/s.
+    pub max_speed_down: f64,
+    /// The velocity loop closes an error in about this long, s.
+    pub time_constant: f64,
+    /// How strongly the wind pushes: `drag * wind` is the disturbance acceleration, 1/s.
+    pub drag: f64,
+    /// Climb rate of a takeoff, m/s.
+    pub takeoff_speed: f64,
+    /// Descent rate of a landing, m/s.
+    pub land_speed: f64,
+}
+
+impl DynamicsLimits {
+    /// PX4's defaults (see the module docs for the parameters).
+    pub const fn px4() -> Self {
+        Self {
+            max_accel_horizontal: 3.0,
+            max_accel_up: 4.0,
+            max_accel_down: 3.0,
+            max_jerk: 4.0,
+            max_speed_horizontal: 12.0,
+            max_speed_up: 3.0,
+            max_speed_down: 1.5,
+            time_constant: 0.3,
+            drag: 0.2,
+            takeoff_speed: 1.5,
+            land_speed: 0.7,
+        }
+    }
+
+    /// The indoor room's drones: PX4's shape scaled to small, slow vehicles in a 10 m room
+    /// (the preset's 0.5 m/s herders): accelerations and jerk a sixth of PX4's, speeds capped
+    /// at 1 m/s horizontally, 0.5 m/s up and down.
+    pub const fn indoor() -> Self {
+        Self {
+            max_accel_horizontal: 0.5,
+            max_accel_up: 0.7,
+            max_accel_down: 0.5,
+            max_jerk: 0.7,
+            max_speed_horizontal: 1.0,
+            max_speed_up: 0.5,
+            max_speed_down: 0.5,
+            time_constant: 0.3,
+            drag: 0.2,
+            takeoff_speed: 0.3,
+            land_speed: 0.2,
+        }
+    }
+
+    /// Every field finite and positive: on failure, the field's name.
+    pub fn validate(&self) -> Result<(), &'static str> {
+        let fields = [
+            ("max_accel_horizontal", self.max_accel_horizontal),
+            ("max_accel_up", self.max_accel_up),
+            ("max_accel_down", self.max_accel_down),
+            ("max_jerk", self.max_jerk),
+            ("max_speed_horizontal", self.max_speed_horizontal),
+            ("max_speed_up", self.max_speed_up),
+            ("max_speed_down", self.max_speed_down),
+            ("time_constant", self.time_constant),
+            ("takeoff_speed", self.takeoff_speed),
+            ("land_speed", self.land_speed),
+        ];
+        for (name, v) in fields {
+            if !(v.is_finite() && v > 0.0) {
+                return Err(name);
+            }
+        }
+        if !(self.drag.is_finite() && self.drag >= 0.0) {
+            return Err("drag");
+        }
+        Ok(())
+    }
+}
+
+/// One multicopter's motion state. Simulator frame, z up.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Multicopter {
+    /// Position, m.
+    pub position: [f64; 3],
+    /// Velocity over the ground, m/s.
+    pub velocity: [f64; 3],
+    /// The acceleration the controller asked for last step (before the wind), m/s^2.
+    pub commanded_accel: [f64; 3],
+}
+
+impl Multicopter {
+    /// At rest at `position`.
+    pub const fn hovering_at(position: [f64; 3]) -> Self {
+        Self {
+            position,
+            velocity: [0.0; 3],
+            commanded_accel: [0.0; 3],
+        }
+    }
+
+    /// One step of `dt` seconds towards `command` (m/s) in `wind` (m/s); see the module docs.
+    /// A non-finite or non-positive `dt`, or a non-finite command, leaves the state as it is.
+    pub fn step(&mut self, command: [f64; 3], wind: [f64; 3], limits: &DynamicsLimits, dt: f64) {
+        if !(dt.is_finite() && dt > 0.0) || !command.iter().all(|c| c.is_finite()) {
+            return;
+        }
+        // 1. Speed limits.
+        let mut target = command;
+        scale_horizontal(&mut target, limits.max_speed_horizontal);
+        target[2] = target[2].clamp(-limits.max_speed_down, limits.max_speed_up);
+        // 2. First-order lag, acceleration limits, jerk limit.
+        let tau = limits.time_constant.max(dt);
+        let mut accel = [0.0; 3];
+        for k in 0..3 {
+            accel[k] = (target[k] - self.velocity[k]) / tau;
+        }
+        scale_horizontal(&mut accel, limits.max_accel_horizontal);
+        accel[2] = accel[2].clamp(-limits.max_accel_down, limits.max_accel_up);
+        let mut change = [0.0; 3];
+        for k in 0..3 {
+            change[k] = accel[k] - self.commanded_accel[k];
+        }
+        let norm = norm3(change);
+        let max_change = limits.max_jerk * dt;
+        if norm > max_change {
+            change.iter_mut().for_each(|c| *c *= max_change / norm);
+        }
+        for k in 0..3 {
+            self.commanded_accel[k] += change[k];
+        }
+        // 3. Wind, after the limits.
+        let wind_ok = wind.iter().all(|w| w.is_finite());
+        for k in 0..3 {
+            let push = if wind_ok { limits.drag * wind[k] } else { 0.0 };
+            // 4. Semi-implicit Euler.
+            self.velocity[k] += (self.commanded_accel[k] + push) * dt;
+            self.position[k] += self.velocity[k] * dt;
+        }
+        if self.position[2] <= 0.0 {
+            self.position[2] = 0.0;
+            self.velocity[2] = self.velocity[2].max(0.0);
+            self.commanded_accel[2] = self.commanded_accel[2].max(0.0);
+        }
+    }
+
+    /// The distance this drone needs to stop horizontally from its present speed under
+    /// `limits`, m: what a fence margin must leave room for.
+    pub fn stopping_distance(&self, limits: &DynamicsLimits) -> f64 {
+        let v = self.velocity[0].hypot(self.velocity[1]);
+        v * v / (2.0 * limits.max_accel_horizontal)
+    }
+}
+
+fn norm3(v: [f64; 3]) -> f64 {
+    (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt()
+}
+
+fn scale_horizontal(v: &mut [f64; 3], max: f64) {
+    let h = v[0].hypot(v[1]);
+    if h > max && h > 0.0 {
+        v[0] *= max / h;
+        v[1] *= max / h;
+    }
+}
+
+/// The wind: a mean plus gusts, each axis an Ornstein-Uhlenbeck process (a first-order
+/// Gauss-Markov process, the simplest stand-in for the Dryden model's low-frequency gusts).
+/// Seeded through the caller's random number generator, so a run is reproducible.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct WindConfig {
+    /// Mean wind, m/s (simulator frame; usually horizontal).
+    pub mean: [f64; 3],
+    /// Stationary standard deviation of the gusts per axis, m/s.
+    pub gust_std: f64,
+    /// Correlation time of the gusts, s.
+    pub gust_time: f64,
+}
+
+impl WindConfig {
+    /// Still air.
+    pub const CALM: WindConfig = WindConfig {
+        mean: [0.0; 3],
+        gust_std: 0.0,
+        gust_time: 1.0,
+    };
+
+    /// The arena's default: 3 m/s from the west with 1 m/s gusts over 2 s (a light breeze).
+    pub const fn arena() -> Self {
+        Self {
+            mean: [3.0, 0.0, 0.0],
+            gust_std: 1.0,
+            gust_time: 2.0,
+        }
+    }
+
+    /// The room's default: still air but for 0.05 m/s draughts over 2 s (an indoor hall).
+    pub const fn room() -> Self {
+        Self {
+            mean: [0.0; 3],
+            gust_std: 0.05,
+            gust_time: 2.0,
+        }
+    }
+}
+
+/// The wind's state: its gust part per axis.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Wind {
+    /// The gusts now, m/s.
+    pub gust: [f64; 3],
+}
+
+impl Wind {
+    /// A stationary start: gusts drawn from the process's own distribution.
+    pub fn new<R: Rng>(config: &WindConfig, rng: &mut R) -> Self {
+        let mut gust = [0.0; 3];
+        for g in &mut gust {
+            let e: f64 = StandardNormal.sample(rng);
+            *g = config.gust_std * e;
+        }
+        Self { gust }
+    }
+
+    /// Advance `dt` seconds; returns the wind velocity now (mean plus gusts), m/s. The exact
+    /// discretisation `x <- a x + sigma sqrt(1 - a^2) e`, `a = exp(-dt / T)`, keeps the gusts'
+    /// variance at `gust_std^2` whatever the step.
+    pub fn step<R: Rng>(&mut self, config: &WindConfig, dt: f64, rng: &mut R) -> [f64; 3] {
+        if dt.is_finite() && dt > 0.0 && config.gust_std > 0.0 && config.gust_time > 0.0 {
+            let a = (-dt / config.gust_time).exp();
+            let s = config.gust_std * (1.0 - a * a).sqrt();
+            for g in &mut self.gust {
+                let e: f64 = StandardNormal.sample(rng);
+                *g = a * *g + s * e;
+            }
+        }
+        self.velocity(config)
+    }
+
+    /// The wind velocity now, m/s.
+    pub fn velocity(&self, config: &WindConfig) -> [f64; 3] {
+        [
+            config.mean[0] + self.gust[0],
+            config.mean[1] + self.gust[1],
+            config.mean[2] + self.gust[2],
+        ]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::SeedableRng;
+    use rand_chacha::ChaCha8Rng;
+
+    fn run(
+        drone: &mut Multicopter,
+        command: [f64; 3],
+        limits: &DynamicsLimits,
+        seconds: f64,
+        dt: f64,
+    ) -> Vec<Multicopter> {
+        (0..(seconds / dt).round() as usize)
+            .map(|_| {
+                drone.step(command, [0.0; 3], limits, dt);
+                *drone
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_step_response_respects_the_acceleration_and_jerk_limits() {
+        let limits = DynamicsLimits::px4();
+        let dt = 0.01;
+        let mut drone = Multicopter::hovering_at([0.0, 0.0, 5.0]);
+        let trace = run(&mut drone, [10.0, 0.0, 0.0], &limits, 10.0, dt);
+        let mut previous = Multicopter::hovering_at([0.0, 0.0, 5.0]);
+        for s in &trace {
+            let accel = (s.velocity[0] - previous.velocity[0]) / dt;
+            assert!(accel <= limits.max_accel_horizontal + 1e-9, "{accel}");
+            let jerk = (s.commanded_accel[0] - previous.commanded_accel[0]).abs() / dt;
+            assert!(jerk <= limits.max_jerk + 1e-9, "{jerk}");
+            previous = *s;
+        }
+        // The jerk limit makes the first second slower than the acceleration limit alone:
+        // 4 m/s^3 for 0.75 s reaches 3 m/s^2, so v(1 s) is about 1.9 m/s, not 3.
+        let at_1s = trace[99].velocity[0];
+        assert!(at_1s > 1.5 && at_1s < 2.3, "{at_1s}");
+        // It settles on the command, without overshooting it by more than a little.
+        assert!((trace.last().unwrap().velocity[0] - 10.0).abs() < 0.01);
+        let peak = trace.iter().map(|s| s.velocity[0]).fold(0.0, f64::max);
+        assert!(peak < 10.3, "overshoot to {peak}");
+    }
+
+    #[test]
+    fn speed_limits_clamp_the_command_horizontally_and_vertically() {
+        let limits = DynamicsLimits::px4();
+        let mut drone = Multicopter::hovering_at([0.0, 0.0, 50.0]);
+        run(&mut drone, [20.0, 20.0, -9.0], &limits, 30.0, 0.05);
+        let h = drone.velocity[0].hypot(drone.velocity[1]);
+        assert!((h - 12.0).abs() < 0.01, "{h}");
+        assert!(
+            (drone.velocity[2] + 1.5).abs() < 0.01,
+            "{}",
+            drone.velocity[2]
+        );
+        let mut climbing = Multicopter::hovering_at([0.0, 0.0, 1.0]);
+        run(&mut climbing, [0.0, 0.0, 9.0], &limits, 10.0, 0.05);
+        assert!((climbing.velocity[2] - 3.0).abs() < 0.01);
+    }
+
+    #[test]
+    fn a_takeoff_climbs_at_its_rate_and_a_landing_stops_on_the_ground() {
+        let limits = DynamicsLimits::px4();
+        let mut drone = Multicopter::hovering_at([0.0, 0.0, 0.0]);
+        // On the ground, asked to go down: it stays.
+        run(&mut drone, [0.0, 0.0, -1.0], &limits, 2.0, 0.05);
+        assert_eq!(drone.position[2], 0.0);
+        assert_eq!(drone.velocity[2], 0.0);
+        // Takeoff at MPC_TKO_SPEED: about 1.5 m/s after the ramp, 2.5 m high within 3 s.
+        let trace = run(
+            &mut drone,
+            [0.0, 0.0, limits.takeoff_speed],
+            &limits,
+            3.0,
+            0.05,
+        );
+        assert!((trace.last().unwrap().velocity[2] - 1.5).abs() < 0.05);
+        assert!(
+            drone.position[2] > 2.5 && drone.position[2] < 4.5,
+            "{}",
+            drone.position[2]
+        );
+        // Landing at MPC_LAND_SPEED: down, and it stops at the ground, not below.
+        let trace = run(
+            &mut drone,
+            [0.0, 0.0, -limits.land_speed],
+            &limits,
+            12.0,
+            0.05,
+        );
+        assert!(trace.iter().all(|s| s.position[2] >= 0.0));
+        assert_eq!(drone.position[2], 0.0);
+        assert_eq!(drone.velocity[2], 0.0);
+    }
+
+    #[test]
+    fn stopping_from_1_m_s_takes_about_the_px4_distance() {
+        let limits = DynamicsLimits::px4();
+        let mut drone = Multicopter::hovering_at([0.0, 0.0, 3.0]);
+        run(&mut drone, [1.0, 0.0, 0.0], &limits, 5.0, 0.01);
+        assert!((drone.stopping_distance(&limits) - 1.0 / 6.0).abs() < 0.01);
+        let start = drone.position[0];
+        run(&mut drone, [0.0; 3], &limits, 5.0, 0.01);
+        let travelled = drone.position[0] - start;
+        // The lag and the jerk limit add to v^2 / 2a = 0.17 m.
+        assert!(travelled > 0.17 && travelled < 0.6, "{travelled}");
+    }
+
+    #[test]
+    fn bad_inputs_leave_the_state_as_it_is() {
+        let limits = DynamicsLimits::px4();
+        let mut drone = Multicopter::hovering_at([1.0, 2.0, 3.0]);
+        let before = drone;
+        drone.step([f64::NAN, 0.0, 0.0], [0.0; 3], &limits, 0.1);
+        drone.step([1.0, 0.0, 0.0], [0.0; 3], &limits, f64::NAN);
+        drone.step([1.0, 0.0, 0.0], [0.0; 3], &limits, -1.0);
+        assert_eq!(drone, before);
+        // Non-finite wind is ignored, not integrated.
+        drone.step([0.0; 3], [f64::INFINITY, 0.0, 0.0], &limits, 0.1);
+        assert!(drone.position.iter().all(|p| p.is_finite()));
+        assert_eq!(DynamicsLimits::px4().validate(), Ok(()));
+        assert_eq!(DynamicsLimits::indoor().validate(), Ok(()));
+        let broken = DynamicsLimits {
+            max_jerk: 0.0,
+            ..DynamicsLimits::px4()
+        };
+        assert_eq!(broken.validate(), Err("max_jerk"));
+    }
+
+    #[test]
+    fn the_wind_has_its_configured_mean_spread_and_memory() {
+        let config = WindConfig {
+            mean: [3.0, -1.0, 0.0],
+            gust_std: 1.5,
+            gust_time: 2.0,
+        };
+        let dt = 0.1;
+        let mut rng = ChaCha8Rng::seed_from_u64(17);
+        let mut wind = Wind::new(&config, &mut rng);
+        let samples: Vec<[f64; 3]> = (0..200_000)
+            .map(|_| wind.step(&config, dt, &mut rng))
+            .collect();
+        let n = samples.len() as f64;
+        for (k, mean) in config.mean.iter().enumerate() {
+            let m = samples.iter().map(|s| s[k]).sum::<f64>() / n;
+            let var = samples.iter().map(|s| (s[k] - m).powi(2)).sum::<f64>() / n;
+            assert!((m - mean).abs() < 0.1, "axis {k}: mean {m}");
+            assert!(
+                (var.sqrt() - 1.5).abs() < 0.08,
+                "axis {k}: std {}",
+                var.sqrt()
+            );
+        }
+        // Lag-one autocorrelation exp(-dt / T) = 0.951.
+        let m = samples.iter().map(|s| s[0]).sum::<f64>() / n;
+        let (mut c0, mut c1) = (0.0, 0.0);
+        for w in samples.windows(2) {
+            c0 += (w[0][0] - m).powi(2);
+            c1 += (w[0][0] - m) * (w[1][0] - m);
+        }
+        let rho = c1 / c0;
+        assert!((rho - (-dt / 2.0_f64).exp()).abs() < 0.01, "{rho}");
+        // Seeded: the same seed, the same gusts.
+        let mut a = ChaCha8Rng::seed_from_u64(3);
+        let mut b = ChaCha8Rng::seed_from_u64(3);
+        let (mut wa, mut wb) = (Wind::new(&config, &mut a), Wind::new(&config, &mut b));
+        for _ in 0..10 {
+            assert_eq!(wa.step(&config, dt, &mut a), wb.step(&config, dt, &mut b));
+        }
+        // Calm air is calm.
+        let mut calm = Wind::new(&WindConfig::CALM, &mut rng);
+        assert_eq!(calm.step(&WindConfig::CALM, dt, &mut rng), [0.0; 3]);
+    }
+
+    #[test]
+    fn a_hovering_drone_drifts_in_the_wind_and_holds_a_command_against_it() {
+        let limits = DynamicsLimits::px4();
+        let mut drone = Multicopter::hovering_at([0.0, 0.0, 3.0]);
+        for _ in 0..600 {
+            drone.step([0.0; 3], [5.0, 0.0, 0.0], &limits, 0.05);
+        }
+        // Without an integrator, a steady wind leaves a small steady drift:
+        // tau drag w = 0.3 * 0.2 * 5 = 0.3 m/s.
+        assert!(
+            (drone.velocity[0] - 0.3).abs() < 0.01,
+            "{}",
+            drone.velocity[0]
+        );
+        assert!(drone.position[0] > 5.0);
+        // Commanded against it, the drone still makes headway at nearly the commanded speed.
+        for _ in 0..600 {
+            drone.step([-2.0, 0.0, 0.0], [5.0, 0.0, 0.0], &limits, 0.05);
+        }
+        assert!(
+            (drone.velocity[0] + 1.7).abs() < 0.01,
+            "{}",
+            drone.velocity[0]
+        );
+    }
+}
