@@ -169,7 +169,7 @@ impl Multicopter {
     /// One step of `dt` seconds towards `command` (m/s) in `wind` (m/s); see the module docs.
     /// A non-finite or non-positive `dt`, or a non-finite command, leaves the state as it is.
     pub fn step(&mut self, command: [f64; 3], wind: [f64; 3], limits: &DynamicsLimits, dt: f64) {
-        if !(dt.is_finite() && dt > 0.0) || !command.iter().all(|c| c.is_finite()) {
+        if !(dt.is_finite() && dt > 0.0 && command.iter().all(|c| c.is_finite())) {
             return;
         }
         // 1. Speed limits.
@@ -178,29 +178,26 @@ impl Multicopter {
         target[2] = target[2].clamp(-limits.max_speed_down, limits.max_speed_up);
         // 2. First-order lag, acceleration limits, jerk limit.
         let tau = limits.time_constant.max(dt);
-        let mut accel = [0.0; 3];
-        for k in 0..3 {
-            accel[k] = (target[k] - self.velocity[k]) / tau;
-        }
+        let mut accel: [f64; 3] = std::array::from_fn(|k| (target[k] - self.velocity[k]) / tau);
         scale_horizontal(&mut accel, limits.max_accel_horizontal);
         accel[2] = accel[2].clamp(-limits.max_accel_down, limits.max_accel_up);
-        let mut change = [0.0; 3];
-        for k in 0..3 {
-            change[k] = accel[k] - self.commanded_accel[k];
-        }
+        let mut change: [f64; 3] = std::array::from_fn(|k| accel[k] - self.commanded_accel[k]);
         let norm = norm3(change);
         let max_change = limits.max_jerk * dt;
         if norm > max_change {
             change.iter_mut().for_each(|c| *c *= max_change / norm);
         }
-        for k in 0..3 {
-            self.commanded_accel[k] += change[k];
+        for (a, c) in self.commanded_accel.iter_mut().zip(change) {
+            *a += c;
         }
-        // 3. Wind, after the limits.
-        let wind_ok = wind.iter().all(|w| w.is_finite());
-        for k in 0..3 {
-            let push = if wind_ok { limits.drag * wind[k] } else { 0.0 };
-            // 4. Semi-implicit Euler.
+        // 3. Wind, after the limits (a non-finite wind pushes nothing).
+        let push = if wind.iter().all(|w| w.is_finite()) {
+            wind.map(|w| limits.drag * w)
+        } else {
+            [0.0; 3]
+        };
+        // 4. Semi-implicit Euler.
+        for (k, push) in push.into_iter().enumerate() {
             self.velocity[k] += (self.commanded_accel[k] + push) * dt;
             self.position[k] += self.velocity[k] * dt;
         }
