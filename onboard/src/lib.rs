@@ -5,6 +5,7 @@ pub mod actor;
 pub mod frame;
 pub mod obs;
 pub mod safety;
+pub mod separation;
 pub mod wire;
 
 pub use skyherd_model::Task;
