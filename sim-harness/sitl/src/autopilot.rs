@@ -19,8 +19,12 @@ use mavlink::dialects::common::{
     MavMessage, MavModeFlag, MavResult, MavState, MavSysStatusSensor, MavType,
     SET_POSITION_TARGET_LOCAL_NED_DATA, SYS_STATUS_DATA,
 };
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
 use skyherd_link::Flavour;
 use skyherd_link::{DAEMON_COMPONENT_ID, FlightMode, VELOCITY_ONLY_TYPE_MASK};
+use skyherd_onboard::frame::{ned_to_sim, sim_to_ned};
+use skyherd_sim::dynamics::{DynamicsLimits, Multicopter, Wind, WindConfig};
 
 /// Configuration of one mock autopilot. Units: seconds, metres, m/s, percent.
 #[derive(Debug, Clone, PartialEq)]
@@ -41,7 +45,25 @@ pub struct AutopilotConfig {
     pub hover_drain_pct_per_s: f64,
     /// Extra drain per m/s of speed (% per s per m/s).
     pub speed_drain_pct_per_s: f64,
+    /// How the vehicle follows its setpoint: `None` flies it at once (the first-order model
+    /// every earlier number was measured with); `Some` through the multicopter model of
+    /// `skyherd_sim::dynamics`, in `wind`.
+    pub dynamics: Option<Motion>,
 }
+
+/// The vehicle's motion model and its air.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Motion {
+    /// Acceleration, jerk and speed limits, lag.
+    pub limits: DynamicsLimits,
+    /// The wind it flies in.
+    pub wind: WindConfig,
+    /// Seed of the wind's gusts (one stream per vehicle).
+    pub wind_seed: u64,
+}
+
+/// Sub-step of the motion model, s: the lockstep tick (0.1 s) is too coarse for a 0.3 s lag.
+const MOTION_STEP_S: f64 = 0.01;
 
 impl AutopilotConfig {
     /// A PX4 quadrotor with system id `system_id` and the defaults below.
@@ -55,6 +77,7 @@ impl AutopilotConfig {
             max_speed: 5.0,
             hover_drain_pct_per_s: 0.05,
             speed_drain_pct_per_s: 0.01,
+            dynamics: None,
         }
     }
 
@@ -121,12 +144,23 @@ pub struct MockAutopilot {
     next_status: f64,
     next_position: f64,
     rejections: Rejections,
+    /// The motion model's state, its wind and the wind's random stream (with `dynamics`).
+    motion: Option<(Multicopter, Wind, ChaCha8Rng)>,
 }
 
 impl MockAutopilot {
     /// A disarmed autopilot booted at `now` (s), at `position_ned` (m), holding.
     pub fn new(config: AutopilotConfig, position_ned: [f64; 3], now: f64) -> Self {
         let mode = config.flavour.hold_mode();
+        let motion = config.dynamics.map(|m| {
+            let mut rng = ChaCha8Rng::seed_from_u64(m.wind_seed);
+            let wind = Wind::new(&m.wind, &mut rng);
+            (
+                Multicopter::hovering_at(ned_to_sim(position_ned)),
+                wind,
+                rng,
+            )
+        });
         Self {
             config,
             boot_time: now,
@@ -144,6 +178,7 @@ impl MockAutopilot {
             next_status: now,
             next_position: now,
             rejections: Rejections::default(),
+            motion,
         }
     }
 
@@ -193,6 +228,10 @@ impl MockAutopilot {
     pub fn set_state(&mut self, position_ned: [f64; 3], velocity_ned: [f64; 3]) {
         self.position_ned = position_ned;
         self.velocity_ned = velocity_ned;
+        if let Some((drone, _, _)) = self.motion.as_mut() {
+            drone.position = ned_to_sim(position_ned);
+            drone.velocity = ned_to_sim(velocity_ned);
+        }
     }
 
     /// Handle one received message at `now`; returns the replies (COMMAND_ACKs).
@@ -361,22 +400,43 @@ impl MockAutopilot {
             && self.mode == self.config.flavour.external_mode()
             && since_setpoint <= ARDUPILOT_VELOCITY_TIMEOUT;
         let command = if fly { self.setpoint } else { [0.0; 3] };
-
-        if let Some(last) = self.last_tick {
-            let dt = (now - last).max(0.0);
-            for (p, v) in self.position_ned.iter_mut().zip(command) {
+        let dt = self.last_tick.map_or(0.0, |last| (now - last).max(0.0));
+        // What the vehicle flies: the command at once, or where the motion model has got to.
+        let flown = match (self.motion.as_mut(), self.config.dynamics) {
+            (Some((drone, wind, rng)), Some(m)) if dt > 0.0 => {
+                let target = ned_to_sim(command);
+                let steps = (dt / MOTION_STEP_S).ceil().max(1.0) as usize;
+                let h = dt / steps as f64;
+                let start = drone.position;
+                for _ in 0..steps {
+                    let air = wind.step(&m.wind, h, rng);
+                    drone.step(target, air, &m.limits, h);
+                }
+                // The mean velocity over the tick, so that velocity * dt is where it went.
+                let p = drone.position;
+                sim_to_ned([
+                    (p[0] - start[0]) / dt,
+                    (p[1] - start[1]) / dt,
+                    (p[2] - start[2]) / dt,
+                ])
+            }
+            (Some(_), Some(_)) => [0.0; 3],
+            _ => command,
+        };
+        if dt > 0.0 {
+            for (p, v) in self.position_ned.iter_mut().zip(flown) {
                 *p += v * dt;
             }
             if self.armed {
-                let speed = (command[0].powi(2) + command[1].powi(2) + command[2].powi(2)).sqrt();
+                let speed = (flown[0].powi(2) + flown[1].powi(2) + flown[2].powi(2)).sqrt();
                 let drain =
                     self.config.hover_drain_pct_per_s + self.config.speed_drain_pct_per_s * speed;
                 self.battery_pct = (self.battery_pct - drain * dt).max(0.0);
             }
         }
-        self.velocity_ned = command;
+        self.velocity_ned = flown;
         self.last_tick = Some(now);
-        command
+        flown
     }
 
     /// Restart the telemetry schedule at `now`: everything falls due then, and the periodic

@@ -161,6 +161,12 @@ pub struct MissionResult {
     pub lockstep_misses: u64,
     /// Autopilot failsafes (setpoint loss and the like).
     pub autopilot_failsafes: u64,
+    /// The smallest 3-D distance between two drones during flight, m (none with one drone).
+    pub min_separation_m: Option<f64>,
+    /// Ticks of flight with two drones closer than `separation_threshold_m`.
+    pub separation_breaches: u64,
+    /// The separation a breach is counted against, m.
+    pub separation_threshold_m: f64,
     /// The ground station's own JSON summary (null when it printed none).
     pub ground: serde_json::Value,
 }
@@ -205,6 +211,16 @@ impl MissionResult {
                     "{} missed ticks, {} autopilot failsafes",
                     self.lockstep_misses, self.autopilot_failsafes
                 ),
+            ),
+            (
+                "separation",
+                match self.min_separation_m {
+                    Some(d) => format!(
+                        "closest {d:.2} m, {} breach ticks (< {} m)",
+                        self.separation_breaches, self.separation_threshold_m
+                    ),
+                    None => "-".to_string(),
+                },
             ),
             (
                 "ground",
@@ -299,6 +315,9 @@ mod tests {
             real_time_factor: 176.5,
             lockstep_misses: 0,
             autopilot_failsafes: 0,
+            min_separation_m: Some(1.234),
+            separation_breaches: 0,
+            separation_threshold_m: 0.5,
             ground: serde_json::json!({"outcome": "complete", "tracks": 4,
                 "uplink_frames_sent": 1200, "fleet_frames_dropped": 0}),
         };
@@ -309,7 +328,11 @@ mod tests {
             table.contains("complete (4 tracks, 1200 uplink frames"),
             "{table}"
         );
-        assert_eq!(table.lines().count(), 8);
+        assert!(
+            table.contains("closest 1.23 m, 0 breach ticks (< 0.5 m)"),
+            "{table}"
+        );
+        assert_eq!(table.lines().count(), 9);
         let failed = MissionResult {
             success: false,
             ending: Some(Ending::LeftArea),

@@ -38,10 +38,11 @@ use skyherd_link::{Codec, Frame, Signing};
 use skyherd_onboard::frame::{ned_to_sim, sim_to_ned};
 use thiserror::Error;
 
-use super::autopilot::{AutopilotConfig, MockAutopilot};
+use super::autopilot::{AutopilotConfig, MockAutopilot, Motion};
 use super::faults::FaultConfig;
 use super::node::{AutopilotNode, NodeOptions};
 use super::sensor::{DetectionSensor, SensorConfig, SensorError};
+use skyherd_sim::dynamics::{DynamicsLimits, WindConfig};
 use skyherd_sim::env::Env;
 use skyherd_sim::scenario::{Scenario, ScenarioError};
 use skyherd_sim::world::{StepScratch, World, WorldError, advance};
@@ -80,6 +81,14 @@ pub struct SitlConfig {
     /// the first scan on. Otherwise the loop waits only once an acknowledgement has come, and
     /// until then whether the ground saw a tick's telemetry before its scan is a race.
     pub ground_acks_scans: bool,
+    /// The vehicles' motion model (`None`: they fly their setpoints at once, as every number
+    /// before the dynamics model was measured) and the wind they fly in.
+    pub dynamics: Option<DynamicsLimits>,
+    /// The wind (with `dynamics` only).
+    pub wind: WindConfig,
+    /// Two drones closer than this (3-D, m) during flight is a separation breach: 0.5 m in a
+    /// room-sized arena (50 m or less across), 3 m otherwise.
+    pub separation_m: f64,
 }
 
 impl SitlConfig {
@@ -103,7 +112,21 @@ impl SitlConfig {
             time_limit_s,
             lose_drone: None,
             ground_acks_scans: true,
+            dynamics: None,
+            wind: WindConfig::CALM,
+            separation_m: 0.0,
         }
+        .with_default_separation()
+    }
+
+    fn with_default_separation(mut self) -> Self {
+        let a = &self.scenario.area;
+        self.separation_m = if a.width.max(a.depth) <= 50.0 {
+            0.5
+        } else {
+            3.0
+        };
+        self
     }
 }
 
@@ -164,6 +187,27 @@ impl SitlConfig {
         }
         if !(self.tick_s.is_finite() && self.tick_s > 0.0) {
             return bad("tick", "must be a positive number of seconds");
+        }
+        if let Some(limits) = &self.dynamics {
+            limits.validate().map_err(|field| SitlError::Invalid {
+                field: "dynamics",
+                reason: format!("{field} must be finite and > 0"),
+            })?;
+        }
+        let w = &self.wind;
+        if !(w.mean.iter().all(|c| c.is_finite() && c.abs() <= 100.0)
+            && w.gust_std.is_finite()
+            && (0.0..=50.0).contains(&w.gust_std)
+            && w.gust_time.is_finite()
+            && w.gust_time > 0.0)
+        {
+            return bad(
+                "wind",
+                "mean within 100 m/s, gusts 0-50 m/s over a positive time",
+            );
+        }
+        if !(self.separation_m.is_finite() && self.separation_m >= 0.0) {
+            return bad("separation", "must be a finite distance >= 0");
         }
         if let Some((index, at)) = self.lose_drone {
             let drones = self.scenario.herder_count();
@@ -229,6 +273,8 @@ pub struct SitlWorld {
     ground_acking: bool,
     acked_scan: f64,
     ack_frames: Vec<Frame>,
+    min_separation_m: f64,
+    separation_breaches: u64,
 }
 
 impl std::fmt::Debug for SitlWorld {
@@ -253,6 +299,11 @@ impl SitlWorld {
         for (i, herder) in world.herders.iter().enumerate() {
             let mut autopilot = AutopilotConfig::px4(i as u8 + 1);
             autopilot.max_speed = config.scenario.limits.herder;
+            autopilot.dynamics = config.dynamics.map(|limits| Motion {
+                limits,
+                wind: config.wind,
+                wind_seed: config.seed.wrapping_add(5000 + i as u64),
+            });
             let options = NodeOptions {
                 signing: config.signing.clone(),
                 faults: config.faults.clone(),
@@ -292,7 +343,20 @@ impl SitlWorld {
             ground_acking,
             acked_scan: f64::NEG_INFINITY,
             ack_frames: Vec::new(),
+            min_separation_m: f64::INFINITY,
+            separation_breaches: 0,
         })
+    }
+
+    /// The smallest 3-D distance between two drones seen during flight, m (infinity with one
+    /// drone or before the flight).
+    pub fn min_separation_m(&self) -> f64 {
+        self.min_separation_m
+    }
+
+    /// Ticks of flight in which some two drones were closer than the config's `separation_m`.
+    pub fn separation_breaches(&self) -> u64 {
+        self.separation_breaches
     }
 
     /// Each drone's autopilot address, by herder index (system id = index + 1).
@@ -437,6 +501,21 @@ impl SitlWorld {
             }
         }
         if self.flight_start.is_some() && self.ending.is_none() {
+            let h = &self.world.herders;
+            let mut closest = f64::INFINITY;
+            for i in 0..h.len() {
+                for j in i + 1..h.len() {
+                    let d = ((h[i][0] - h[j][0]).powi(2)
+                        + (h[i][1] - h[j][1]).powi(2)
+                        + (h[i][2] - h[j][2]).powi(2))
+                    .sqrt();
+                    closest = closest.min(d);
+                }
+            }
+            self.min_separation_m = self.min_separation_m.min(closest);
+            if closest < self.config.separation_m {
+                self.separation_breaches += 1;
+            }
             self.path_length += before
                 .iter()
                 .zip(&self.world.herders)

@@ -53,6 +53,7 @@ fn a_bad_fault_flag_is_refused() {
         ("--lose-drone", "0@nan"),
         ("--cut-uplink", "5"),
         ("--cut-uplink", "3,-5"),
+        ("--wind", "arena"),
     ] {
         let arg = format!("{flag}={value}");
         let (ok, err) = sitl(&["--scenario", "indoor", "--model", model, "--out", out, &arg]);

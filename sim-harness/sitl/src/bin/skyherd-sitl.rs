@@ -19,6 +19,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 use clap::Parser;
+use skyherd_sim::dynamics::{DynamicsLimits, WindConfig};
 use skyherd_sim::scenario::HerderCount;
 use skyherd_sim::{Scenario, World};
 use skyherd_sitl::FaultConfig;
@@ -72,6 +73,15 @@ struct Cli {
     /// Cut the ground's uplink to every drone for DURATION seconds from START (START,DURATION).
     #[arg(long)]
     cut_uplink: Option<String>,
+    /// How the vehicles follow their setpoints: `off` (at once, as every earlier number was
+    /// measured), `px4` (PX4's default acceleration, jerk and speed limits) or `room` (the
+    /// same shape scaled to the indoor room's slow vehicles); see skyherd_sim::dynamics.
+    #[arg(long, value_enum, default_value_t = DynamicsArg::Off)]
+    dynamics: DynamicsArg,
+    /// The wind (with --dynamics only): `calm`, `arena` (3 m/s with 1 m/s gusts) or `room`
+    /// (0.05 m/s draughts).
+    #[arg(long, value_enum, default_value_t = WindArg::Calm)]
+    wind: WindArg,
     /// Give up this many simulated seconds after the drones start flying. A mission's abort
     /// limit is mission control's choice, not the scenario's training-episode step limit.
     #[arg(long, default_value_t = 300.0)]
@@ -81,6 +91,20 @@ struct Cli {
 /// The exit status of a mission that ran but did not succeed (1 is an error before or during
 /// the run): scripts can tell a failed mission from a broken one.
 const MISSION_FAILED: u8 = 2;
+
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+enum DynamicsArg {
+    Off,
+    Px4,
+    Room,
+}
+
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+enum WindArg {
+    Calm,
+    Arena,
+    Room,
+}
 
 fn main() -> Result<std::process::ExitCode> {
     let cli = Cli::parse();
@@ -211,6 +235,19 @@ impl Cli {
             bail!("--time-limit must be a positive number of seconds");
         }
         config.time_limit_s = self.time_limit;
+        config.dynamics = match self.dynamics {
+            DynamicsArg::Off => None,
+            DynamicsArg::Px4 => Some(DynamicsLimits::px4()),
+            DynamicsArg::Room => Some(DynamicsLimits::indoor()),
+        };
+        config.wind = match self.wind {
+            WindArg::Calm => WindConfig::CALM,
+            WindArg::Arena => WindConfig::arena(),
+            WindArg::Room => WindConfig::room(),
+        };
+        if config.dynamics.is_none() && !matches!(self.wind, WindArg::Calm) {
+            bail!("--wind needs --dynamics px4 or room: without a motion model nothing feels it");
+        }
         if let Some(spec) = &self.cut_uplink {
             // The ground applies it; checked here so that a bad value stops the mission before
             // any process starts, with the flag's name.
@@ -363,6 +400,9 @@ fn mission_result(
         real_time_factor: sitl.time_s() / wall_s.max(1e-9),
         lockstep_misses: sitl.lockstep_misses(),
         autopilot_failsafes: sitl.failsafe_events(),
+        min_separation_m: Some(sitl.min_separation_m()).filter(|d| d.is_finite()),
+        separation_breaches: sitl.separation_breaches(),
+        separation_threshold_m: sitl.config().separation_m,
         ground,
     }
 }
