@@ -65,6 +65,7 @@ use skyherd_onboard::actor::Actor;
 use skyherd_onboard::frame::{ned_to_sim, sim_to_ned};
 use skyherd_onboard::obs::{self, FEATURES, ObsError, ObsInput};
 use skyherd_onboard::safety::{self, Limits, Reasons, Situation};
+use skyherd_onboard::separation::{Peer, SeparationConfig, separate};
 use skyherd_onboard::wire::{
     MissionAction, MissionCommand, Reassembler, Uplink, WireError, WorldSnapshot, decode_uplink,
 };
@@ -109,6 +110,9 @@ pub struct CoreConfig {
     pub stream_before_mode: Duration,
     /// Arm and mode requests are repeated this often until the autopilot reports them done.
     pub command_retry: Duration,
+    /// Keep apart from the other drones of the snapshot (`skyherd_onboard::separation`), before
+    /// the safety rules; `None`: off, the actor's request goes to the rules as it is.
+    pub separation: Option<SeparationConfig>,
 }
 
 impl CoreConfig {
@@ -124,6 +128,7 @@ impl CoreConfig {
             autopilot_timeout: Duration::from_millis(1500),
             stream_before_mode: Duration::from_millis(1200),
             command_retry: Duration::from_millis(1000),
+            separation: None,
         }
     }
 }
@@ -318,6 +323,8 @@ struct AutopilotView {
     mode_accepted_at: Option<Millis>,
     /// Own position, simulator frame, and when it arrived.
     position: Option<([f32; 3], Millis)>,
+    /// Own velocity from the last two positions, m/s, simulator frame.
+    velocity: [f32; 3],
 }
 
 #[derive(Clone, Copy, Debug)]
@@ -358,6 +365,10 @@ pub struct DaemonCore<P> {
     // Scratch buffers reused every tick so flying allocates nothing after warm-up.
     herders: Vec<[f32; 3]>,
     features: [f32; FEATURES],
+    /// The other drones' velocities between the last two snapshots, by herder index.
+    peer_velocities: Vec<[f32; 3]>,
+    /// Scratch for the separation rule's peers.
+    peers: Vec<Peer>,
 }
 
 impl<P: OnboardPolicy> DaemonCore<P> {
@@ -376,6 +387,8 @@ impl<P: OnboardPolicy> DaemonCore<P> {
             counters: CoreCounters::default(),
             herders: Vec::new(),
             features: [0.0; FEATURES],
+            peer_velocities: Vec::new(),
+            peers: Vec::new(),
         }
     }
 
@@ -461,7 +474,12 @@ impl<P: OnboardPolicy> DaemonCore<P> {
     pub fn on_local_position(&mut self, now: Millis, position_ned: [f32; 3]) {
         self.autopilot.last_heard = Some(now);
         if position_ned.iter().all(|x| x.is_finite()) {
-            self.autopilot.position = Some((ned_to_sim(position_ned), now));
+            let position = ned_to_sim(position_ned);
+            self.autopilot.velocity = match self.autopilot.position {
+                Some((before, at)) => finite_difference(before, position, now.since(at)),
+                None => [0.0; 3],
+            };
+            self.autopilot.position = Some((position, now));
         } else {
             warn!("ignoring non-finite LOCAL_POSITION_NED {position_ned:?}");
         }
@@ -522,6 +540,19 @@ impl<P: OnboardPolicy> DaemonCore<P> {
             return;
         }
         self.counters.snapshots += 1;
+        // The other drones' velocities, from this snapshot and the one before (ground clock).
+        self.peer_velocities.clear();
+        if let Some((before, _)) = &self.world {
+            let dt =
+                Duration::from_millis(snapshot.timestamp_ms.saturating_sub(before.timestamp_ms));
+            for (i, p) in snapshot.herders.iter().enumerate() {
+                let v = before
+                    .herders
+                    .get(i)
+                    .map_or([0.0; 3], |b| finite_difference(*b, *p, dt));
+                self.peer_velocities.push(v);
+            }
+        }
         self.world = Some((snapshot, now));
     }
 
@@ -722,6 +753,25 @@ impl<P: OnboardPolicy> DaemonCore<P> {
                 Err(e) => ([0.0; 3], Some(HoldReason::BadObservation(e))),
             }
         };
+        // Keep apart from the other drones first; the safety rules still have the last word.
+        let request = match &self.config.separation {
+            Some(separation) if own_reason.is_none() => {
+                self.peers.clear();
+                for (i, p) in world.herders.iter().enumerate() {
+                    if i != self.config.herder_index {
+                        let velocity = self.peer_velocities.get(i).copied().unwrap_or([0.0; 3]);
+                        self.peers.push(Peer {
+                            position: *p,
+                            velocity,
+                            age_s: age_ms as f32 / 1000.0,
+                        });
+                    }
+                }
+                let own_velocity = self.autopilot.velocity;
+                separate(separation, own, own_velocity, request, &self.peers).velocity
+            }
+            _ => request,
+        };
         let checked = safety::check(
             &limits,
             &Situation {
@@ -741,6 +791,24 @@ impl<P: OnboardPolicy> DaemonCore<P> {
             None => Status::Flying(checked.reasons),
         };
         (setpoint, status)
+    }
+}
+
+/// `(after - before) / dt` in m/s, zero when `dt` is not a usable interval (0, or over 2 s).
+fn finite_difference(before: [f32; 3], after: [f32; 3], dt: Duration) -> [f32; 3] {
+    let dt = dt.as_secs_f32();
+    if !(dt > 0.0 && dt <= 2.0) {
+        return [0.0; 3];
+    }
+    let v = [
+        (after[0] - before[0]) / dt,
+        (after[1] - before[1]) / dt,
+        (after[2] - before[2]) / dt,
+    ];
+    if v.iter().all(|c| c.is_finite()) {
+        v
+    } else {
+        [0.0; 3]
     }
 }
 

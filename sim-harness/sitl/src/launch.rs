@@ -30,6 +30,8 @@ pub struct LaunchPlan {
     pub cut_uplink: Option<String>,
     /// The ground stops this many wall seconds after the last scan and prints its summary.
     pub ground_idle_timeout_s: f64,
+    /// The daemons keep at least this far apart (`--separation-m`); `None`: the rule is off.
+    pub keep_apart_m: Option<f64>,
 }
 
 /// The ground station's command: it listens for the fleet at `fleet`, and sends each drone's
@@ -132,6 +134,9 @@ pub fn daemon_command(
         .arg(scenario.limits.herder.to_string())
         .stdout(Stdio::null())
         .stderr(log);
+    if let Some(m) = plan.keep_apart_m {
+        cmd.arg("--separation-m").arg(m.to_string());
+    }
     Ok(cmd)
 }
 

@@ -17,6 +17,7 @@ use skyherd_daemon::io::{ClockMode, Daemon, LinkOptions, parse_key};
 use skyherd_daemon::selftest;
 use skyherd_link::Flavour;
 use skyherd_onboard::actor::Actor;
+use skyherd_onboard::separation::SeparationConfig;
 
 #[derive(Parser, Debug)]
 #[command(
@@ -83,6 +84,10 @@ struct RunArgs {
     /// (simulator time with --sim-clock).
     #[arg(long, default_value_t = 1000)]
     uplink_timeout_ms: u64,
+    /// Keep at least this far (3-D, m) from the other drones of the snapshot (the reciprocal
+    /// rule of skyherd_onboard::separation); 0: off.
+    #[arg(long, default_value_t = 0.0)]
+    separation_m: f32,
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -138,6 +143,25 @@ fn run(args: RunArgs) -> Result<()> {
     let mut config = CoreConfig::new(args.system_id, herder_index, flavour);
     config.max_speed = args.max_speed.unwrap_or(actor.max_speed());
     config.uplink_timeout = std::time::Duration::from_millis(args.uplink_timeout_ms);
+    if !(args.separation_m.is_finite() && (0.0..=100.0).contains(&args.separation_m)) {
+        bail!(
+            "--separation-m must be 0 (off) to 100 m, got {}",
+            args.separation_m
+        );
+    }
+    if args.separation_m > 0.0 {
+        // The room's horizon and escape for small drones, the arena's otherwise.
+        let base = if args.separation_m <= 1.0 {
+            SeparationConfig::room()
+        } else {
+            SeparationConfig::arena()
+        };
+        config.separation = Some(SeparationConfig {
+            min_separation: args.separation_m,
+            peer_speed_bound: config.max_speed,
+            ..base
+        });
+    }
     if !(config.max_speed.is_finite() && config.max_speed > 0.0) {
         bail!(
             "--max-speed must be a positive number of m/s, got {}",

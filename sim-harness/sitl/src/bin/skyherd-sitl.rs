@@ -78,6 +78,11 @@ struct Cli {
     /// same shape scaled to the indoor room's slow vehicles); see skyherd_sim::dynamics.
     #[arg(long, value_enum, default_value_t = DynamicsArg::Off)]
     dynamics: DynamicsArg,
+    /// The daemons keep apart by the breach distance (0.5 m in a room, 3 m in the arena) with
+    /// the reciprocal rule of skyherd_onboard::separation (off by default, so every earlier
+    /// number stands).
+    #[arg(long)]
+    keep_apart: bool,
     /// The wind (with --dynamics only): `calm`, `arena` (3 m/s with 1 m/s gusts) or `room`
     /// (0.05 m/s draughts).
     #[arg(long, value_enum, default_value_t = WindArg::Calm)]
@@ -140,6 +145,7 @@ fn main() -> Result<std::process::ExitCode> {
         cut_uplink: cli.cut_uplink.clone(),
         // As fast as possible, scans come every few milliseconds and a silent second means the
         // simulation is over; in real time (or slower) the pre-roll alone can take a second.
+        keep_apart_m: cli.keep_apart.then_some(sitl.config().separation_m),
         ground_idle_timeout_s: if cli.speed > 0.0 {
             (3.0 / cli.speed).max(1.0)
         } else {
