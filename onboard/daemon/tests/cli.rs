@@ -91,16 +91,17 @@ fn without_a_key_the_daemon_refuses_to_fly_unless_told_it_is_a_bench_test() {
     let (ok, err) = run_with(&["--model", model, "--system-id", "1"]);
     assert!(!ok);
     assert!(err.contains("--key") && err.contains("--insecure"), "{err}");
-    // --insecure gets past the key, so the next check speaks: an absurd control rate.
-    for arg in ["--separation-m=nan", "--separation-m=-1"] {
-        let (ok, err) = run_with(&["--model", model, "--system-id", "1", "--insecure", arg]);
-        assert!(!ok, "{arg} accepted");
-        assert!(err.contains("--separation-m"), "{arg}: {err}");
-    }
-    for rate in ["0", "nan", "1e9"] {
-        let arg = format!("--rate-hz={rate}");
+    // --insecure gets past the key, so the next checks speak, each naming its flag.
+    for (flag, value) in [
+        ("--separation-m", "nan"),
+        ("--separation-m", "-1"),
+        ("--rate-hz", "0"),
+        ("--rate-hz", "nan"),
+        ("--rate-hz", "1e9"),
+    ] {
+        let arg = format!("{flag}={value}");
         let (ok, err) = run_with(&["--model", model, "--system-id", "1", "--insecure", &arg]);
         assert!(!ok, "{arg} accepted");
-        assert!(err.contains("--rate-hz"), "{arg}: {err}");
+        assert!(err.contains(flag), "{arg}: {err}");
     }
 }
