@@ -9,9 +9,12 @@
 //! with a [`Signing`] config every outgoing frame is signed and every incoming frame must carry
 //! a valid signature under the same key; unsigned frames are rejected unless
 //! [`Signing::accept_unsigned`]. The signature timestamp comes from the `mavlink` crate (wall
-//! clock, 10 us units since 2015) as the protocol requires; replayed frames are rejected.
+//! clock, 10 us units since 2015) as the protocol requires; what arrives goes through a
+//! [`ReplayGuard`]: replays, new streams older than a minute and frames from more than a
+//! minute in the future are rejected.
 
-use crate::signing::{Signing, signing_data};
+use crate::replay::{ReplayGuard, SigningTime};
+use crate::signing::{Signing, SigningKey, signing_data};
 use mavlink::dialects::common::MavMessage;
 use mavlink::{MAVLinkV1MessageRaw, MAVLinkV2MessageRaw, MavHeader, MavlinkVersion, Message};
 
@@ -76,12 +79,22 @@ pub struct Frame {
     pub signed: bool,
 }
 
+/// A signed link's state: the signer (the `mavlink` crate's, wall-clock timestamps), the key
+/// and the replay guard that checks what arrives.
+struct LinkSigning {
+    signer: mavlink::SigningData,
+    key: SigningKey,
+    accept_unsigned: bool,
+    guard: ReplayGuard,
+    clock: fn() -> SigningTime,
+}
+
 /// Encoder/decoder for one link endpoint: our system/component id, sequence, signing, stats.
 pub struct Codec {
     system_id: u8,
     component_id: u8,
     sequence: u8,
-    signing: Option<(mavlink::SigningData, bool)>,
+    signing: Option<LinkSigning>,
     stats: CodecStats,
     /// Stream transports: the start of a frame whose end has not arrived yet.
     stream_tail: Vec<u8>,
@@ -105,10 +118,26 @@ impl Codec {
             system_id,
             component_id,
             sequence: 0,
-            signing: signing.map(|s| (signing_data(&s.key, s.link_id), s.accept_unsigned)),
+            signing: signing.map(|s| LinkSigning {
+                signer: signing_data(&s.key, s.link_id),
+                key: s.key,
+                accept_unsigned: s.accept_unsigned,
+                guard: ReplayGuard::new(SigningTime::now()),
+                clock: SigningTime::now,
+            }),
             stats: CodecStats::default(),
             stream_tail: Vec::new(),
         }
+    }
+
+    /// The same codec reading its signing clock from `clock` instead of the system's (tests,
+    /// and simulations whose signers keep their own time).
+    pub fn with_signing_clock(mut self, clock: fn() -> SigningTime) -> Self {
+        if let Some(signing) = &mut self.signing {
+            signing.clock = clock;
+            signing.guard = ReplayGuard::new(clock());
+        }
+        self
     }
 
     /// Our system id.
@@ -133,9 +162,9 @@ impl Codec {
         // typed message cannot overflow it.
         let mut raw = MAVLinkV2MessageRaw::new();
         match &self.signing {
-            Some((data, _)) => {
+            Some(signing) => {
                 raw.serialize_message_for_signing(header, message);
-                data.sign_message(&mut raw);
+                signing.signer.sign_message(&mut raw);
             }
             None => raw.serialize_message(header, message),
         }
@@ -212,13 +241,14 @@ impl Codec {
             self.stats.bad_crc += 1;
             return Step::Skip(1);
         }
-        if let Some((data, accept_unsigned)) = &self.signing {
+        if let Some(signing) = &mut self.signing {
             if signed {
-                if !data.verify_signature(&raw) {
+                let now = (signing.clock)();
+                if signing.guard.verify(&signing.key, &raw, now).is_err() {
                     self.stats.bad_signature += 1;
                     return Step::Skip(total);
                 }
-            } else if !accept_unsigned {
+            } else if !signing.accept_unsigned {
                 self.stats.unsigned_rejected += 1;
                 return Step::Skip(total);
             }
@@ -329,6 +359,29 @@ mod tests {
     }
 
     #[test]
+    fn a_frame_from_the_future_is_rejected_and_the_link_keeps_working() {
+        use crate::replay::sign;
+        let mut rx = Codec::new(255, 190, Some(key(1)));
+        let mut raw = MAVLinkV2MessageRaw::new();
+        let header = MavHeader {
+            system_id: 7,
+            component_id: 1,
+            sequence: 0,
+        };
+        raw.serialize_message_for_signing(header, &heartbeat());
+        let year_ahead = SigningTime::now().plus_seconds(365.0 * 86_400.0);
+        sign(&SigningKey([1; 32]), 1, year_ahead, &mut raw);
+        let mut out = Vec::new();
+        rx.decode(raw.raw_bytes(), &mut out);
+        assert!(out.is_empty());
+        assert_eq!(rx.stats().bad_signature, 1);
+        // The honest sender, on the same stream, still gets through: nothing was dragged.
+        let mut good = Codec::new(7, 1, Some(key(1)));
+        rx.decode(&good.encode(&heartbeat()), &mut out);
+        assert_eq!(out.len(), 1);
+    }
+
+    #[test]
     fn malformed_input_is_counted_never_panics() {
         let mut tx = Codec::new(7, 1, None);
         let mut rx = Codec::new(255, 190, None);
@@ -373,18 +426,58 @@ mod tests {
     fn key_file_raw_and_hex() {
         let dir = std::env::temp_dir().join(format!("skyherd-key-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
+        let write = |path: &std::path::Path, bytes: &[u8]| {
+            use std::os::unix::fs::PermissionsExt;
+            std::fs::write(path, bytes).unwrap();
+            std::fs::set_permissions(path, std::fs::Permissions::from_mode(0o600)).unwrap();
+        };
         let raw = dir.join("raw.key");
-        std::fs::write(&raw, [9u8; 32]).unwrap();
+        write(&raw, &[9u8; 32]);
         assert_eq!(SigningKey::from_file(&raw).unwrap(), SigningKey([9; 32]));
         let hex = dir.join("hex.key");
-        std::fs::write(&hex, format!("{}\n", "0a".repeat(32))).unwrap();
+        write(&hex, format!("{}\n", "0a".repeat(32)).as_bytes());
         assert_eq!(SigningKey::from_file(&hex).unwrap(), SigningKey([10; 32]));
         let short = dir.join("short.key");
-        std::fs::write(&short, [1u8; 5]).unwrap();
+        write(&short, &[1u8; 5]);
         assert!(matches!(
             SigningKey::from_file(&short),
             Err(KeyFileError::BadLength { .. })
         ));
+        // A key open to others is refused, naming the mode.
+        let open = dir.join("open.key");
+        std::fs::write(&open, [9u8; 32]).unwrap();
+        {
+            use std::os::unix::fs::PermissionsExt;
+            std::fs::set_permissions(&open, std::fs::Permissions::from_mode(0o644)).unwrap();
+        }
+        let err = SigningKey::from_file(&open).unwrap_err();
+        assert!(
+            matches!(err, KeyFileError::TooOpen { mode: 0o644, .. }),
+            "{err}"
+        );
+        assert!(err.to_string().contains("644"));
+        // A generated key is written 0600, read back, and never overwritten.
+        let fresh = dir.join("fresh.key");
+        let generated = SigningKey::generate().unwrap();
+        generated.write_new_file(&fresh).unwrap();
+        assert_eq!(SigningKey::from_file(&fresh).unwrap(), generated);
+        {
+            use std::os::unix::fs::PermissionsExt;
+            let mode = std::fs::metadata(&fresh).unwrap().permissions().mode();
+            assert_eq!(mode & 0o777, 0o600);
+        }
+        assert!(matches!(
+            SigningKey::generate().unwrap().write_new_file(&fresh),
+            Err(KeyFileError::Create { .. })
+        ));
+        // A symlink in a new key's place is not followed.
+        let target = dir.join("target");
+        let link = dir.join("link.key");
+        std::os::unix::fs::symlink(&target, &link).unwrap();
+        assert!(generated.write_new_file(&link).is_err());
+        assert!(!target.exists());
+        // An endless file is refused, not read to the end.
+        assert!(SigningKey::from_file(std::path::Path::new("/dev/zero")).is_err());
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }

@@ -13,7 +13,10 @@
 //!   COMMAND_ACK matching.
 //! * [`flavour`]: PX4 and ArduPilot: flight-mode numbering ([`FlightMode`]) and the
 //!   autopilot families ([`Flavour`]).
-//! * [`signing`]: 32-byte keys, key files and the one signing set-up.
+//! * [`signing`]: 32-byte keys, key files (generated from OS randomness, created 0600,
+//!   refused when open to others) and the one signing set-up.
+//! * [`replay`]: signature checks with per-stream replay state that can be persisted, a
+//!   bound on timestamps from the future, and the caller's clock passed in.
 //!
 //! Frame: setpoints are MAVLink `LOCAL_NED` (x north, y east, z down), metres and m/s.
 //!
@@ -35,6 +38,7 @@
 pub mod codec;
 pub mod command;
 pub mod flavour;
+pub mod replay;
 pub mod signing;
 
 pub use codec::{Codec, CodecStats, Frame};

@@ -34,6 +34,27 @@ pub enum KeyFileError {
         /// The I/O error.
         source: std::io::Error,
     },
+    /// Group or others may read or write the file: the key may already be known.
+    #[error(
+        "signing key file {path} has mode {mode:o}: group and others must have no access (chmod 600 it, or make a new key with skyherd-ground keygen)"
+    )]
+    TooOpen {
+        /// The file.
+        path: String,
+        /// Its permission bits.
+        mode: u32,
+    },
+    /// The file could not be created (it exists already, or its folder is missing).
+    #[error("cannot create signing key file {path}: {source}")]
+    Create {
+        /// The file.
+        path: String,
+        /// The I/O error.
+        source: std::io::Error,
+    },
+    /// The operating system gave no randomness.
+    #[error("no randomness from the operating system for a key: {0}")]
+    NoRandomness(String),
     /// The file is neither 32 raw bytes nor 64 hex digits.
     #[error("signing key file {path} must hold 32 raw bytes or 64 hex digits, found {len} bytes")]
     BadLength {
@@ -44,17 +65,84 @@ pub enum KeyFileError {
     },
 }
 
+/// A key file is at most this long (64 hex digits and whitespace); more is not read.
+const MAX_KEY_FILE_BYTES: u64 = 4096;
+
 impl SigningKey {
-    /// Read a key file: exactly 32 raw bytes, or 64 hex digits (whitespace around ignored).
+    /// A fresh key from the operating system's randomness.
     ///
     /// # Errors
-    /// [`KeyFileError`] when the file is unreadable or has the wrong length.
+    /// [`KeyFileError::NoRandomness`] when the operating system has none to give.
+    pub fn generate() -> Result<Self, KeyFileError> {
+        let mut key = [0u8; KEY_LEN];
+        getrandom::fill(&mut key).map_err(|e| KeyFileError::NoRandomness(e.to_string()))?;
+        Ok(Self(key))
+    }
+
+    /// Writes the key to a new file, as 64 hex digits and a newline: created with
+    /// `O_CREAT | O_EXCL` (an existing file or a symlink in its place is an error, never
+    /// followed or overwritten) and, on Unix, mode 0600 from the start.
+    ///
+    /// # Errors
+    /// [`KeyFileError::Create`] when the file exists or cannot be written.
+    pub fn write_new_file(&self, path: &Path) -> Result<(), KeyFileError> {
+        use std::io::Write;
+        let mut options = std::fs::OpenOptions::new();
+        options.write(true).create_new(true);
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::OpenOptionsExt;
+            options.mode(0o600);
+        }
+        let hex: String = self.0.iter().map(|b| format!("{b:02x}")).collect();
+        options
+            .open(path)
+            .and_then(|mut f| {
+                f.write_all(format!("{hex}\n").as_bytes())?;
+                f.sync_all()
+            })
+            .map_err(|source| KeyFileError::Create {
+                path: path.display().to_string(),
+                source,
+            })
+    }
+
+    /// Read a key file: exactly 32 raw bytes, or 64 hex digits (whitespace around ignored).
+    /// On Unix the file must not be open to group or others (as ssh insists for its keys),
+    /// and at most 4 KiB of it is read, so `/dev/zero` is refused rather than read forever.
+    ///
+    /// # Errors
+    /// [`KeyFileError`] when the file is unreadable, too open or has the wrong length.
     pub fn from_file(path: &Path) -> Result<Self, KeyFileError> {
+        use std::io::Read;
         let name = path.display().to_string();
-        let bytes = std::fs::read(path).map_err(|source| KeyFileError::Io {
+        let io = |source| KeyFileError::Io {
             path: name.clone(),
             source,
-        })?;
+        };
+        let file = std::fs::File::open(path).map_err(io)?;
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::PermissionsExt;
+            let meta = file.metadata().map_err(io)?;
+            let mode = meta.permissions().mode();
+            if meta.is_file() && mode & 0o077 != 0 {
+                return Err(KeyFileError::TooOpen {
+                    path: name,
+                    mode: mode & 0o777,
+                });
+            }
+        }
+        let mut bytes = Vec::new();
+        file.take(MAX_KEY_FILE_BYTES + 1)
+            .read_to_end(&mut bytes)
+            .map_err(io)?;
+        if bytes.len() as u64 > MAX_KEY_FILE_BYTES {
+            return Err(KeyFileError::BadLength {
+                path: name,
+                len: bytes.len(),
+            });
+        }
         if let Ok(key) = <[u8; 32]>::try_from(bytes.as_slice()) {
             return Ok(Self(key));
         }
