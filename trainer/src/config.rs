@@ -212,6 +212,12 @@ pub struct GoalDistanceCurriculum {
     /// The progress (fraction of `training.env_steps`) from which every driving episode has the
     /// full distance.
     pub full_at_progress: f64,
+    /// The pulled goal's centre stays at least this many goal radii from the flock's centroid
+    /// (never nearer than the paper's layout put it; 0: no floor). Without it a share of 0.2
+    /// puts the flock at the goal's edge, so "fly to the goal" and "fly to the flock" are one
+    /// behaviour early on, and an actor that learned the first never drives.
+    #[serde(default)]
+    pub min_centre_distance_radii: f64,
 }
 
 impl Default for GoalDistanceCurriculum {
@@ -219,6 +225,7 @@ impl Default for GoalDistanceCurriculum {
         Self {
             first_share: 1.0,
             full_at_progress: 0.0,
+            min_centre_distance_radii: 0.0,
         }
     }
 }
@@ -726,6 +733,12 @@ impl TrainConfig {
             return bad(
                 "curriculum.driving_goal_distance.full_at_progress",
                 "must be in [0, 1]",
+            );
+        }
+        if !(g.min_centre_distance_radii >= 0.0 && g.min_centre_distance_radii <= 100.0) {
+            return bad(
+                "curriculum.driving_goal_distance.min_centre_distance_radii",
+                "must be in [0, 100]",
             );
         }
         let ev = &self.evolution;

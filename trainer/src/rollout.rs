@@ -116,10 +116,25 @@ pub fn nearest_others(
 /// `world` with its goal moved along the line from the flock centroid, keeping `share` of the
 /// distance (the goal stays inside the arena: both ends of the line are).
 pub fn pull_goal(world: &skyherd_sim::World, share: f64) -> skyherd_sim::World {
+    pull_goal_at_least(world, share, 0.0)
+}
+
+/// [`pull_goal`], keeping the goal's centre at least `min_radii` goal radii from the flock's
+/// centroid (or where it was, if that is nearer).
+pub fn pull_goal_at_least(
+    world: &skyherd_sim::World,
+    share: f64,
+    min_radii: f64,
+) -> skyherd_sim::World {
     let mut w = world.clone();
     let c = w.flock_centroid();
     let g = w.goal.center;
-    let share = share.clamp(0.0, 1.0);
+    let distance = (g[0] - c[0]).hypot(g[1] - c[1]);
+    let mut share = share.clamp(0.0, 1.0);
+    if distance > 0.0 {
+        let floor = (min_radii.max(0.0) * w.goal.radius / distance).min(1.0);
+        share = share.max(floor);
+    }
     w.goal.center = [c[0] + share * (g[0] - c[0]), c[1] + share * (g[1] - c[1])];
     w
 }
@@ -190,6 +205,8 @@ pub struct Rollouts {
     noise: bool,
     ddpg: DdpgConfig,
     flight_rules: bool,
+    /// The driving curriculum's floor on the pulled goal's distance, goal radii.
+    min_centre_distance_radii: f64,
     /// Environment steps taken (summed over slots).
     pub env_steps: u64,
 }
@@ -265,6 +282,10 @@ impl Rollouts {
             noise: config.training.noise,
             ddpg: config.ddpg,
             flight_rules: config.training.flight_rules,
+            min_centre_distance_radii: config
+                .curriculum
+                .driving_goal_distance
+                .min_centre_distance_radii,
             env_steps: 0,
         };
         for i in 0..count {
@@ -286,7 +307,11 @@ impl Rollouts {
         let seed = self.rng.random_range(0..1_000_000_000u64);
         env.reset(seed);
         if draw.task == Task::Driving && draw.goal_distance_permille < 1000 {
-            let world = pull_goal(env.world(), f64::from(draw.goal_distance_permille) / 1000.0);
+            let world = pull_goal_at_least(
+                env.world(),
+                f64::from(draw.goal_distance_permille) / 1000.0,
+                self.min_centre_distance_radii,
+            );
             env.reset_to(world, seed)?;
         }
         reward.start(env.world());
@@ -677,6 +702,7 @@ mod tests {
         config.curriculum.driving_goal_distance = crate::config::GoalDistanceCurriculum {
             first_share: 0.25,
             full_at_progress: 0.5,
+            min_centre_distance_radii: 0.0,
         };
         let mut rng = ChaCha8Rng::seed_from_u64(4);
         let early: Vec<Draw> = (0..200)
@@ -700,6 +726,11 @@ mod tests {
         let mut env = Env::new(Scenario::paper(Task::Driving)).expect("env");
         env.reset(7);
         let w = env.world().clone();
+        // With a floor of 1.5 goal radii the pulled centre stays that far from the flock.
+        let floored = pull_goal_at_least(&w, 0.0, 1.5);
+        let c = w.flock_centroid();
+        let d = (floored.goal.center[0] - c[0]).hypot(floored.goal.center[1] - c[1]);
+        assert!((d - 1.5 * w.goal.radius).abs() < 1e-9, "{d}");
         let pulled = pull_goal(&w, 0.25);
         let c = w.flock_centroid();
         let d = |g: [f64; 2]| (g[0] - c[0]).hypot(g[1] - c[1]);
