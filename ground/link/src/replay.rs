@@ -222,6 +222,18 @@ impl ReplayGuard {
                 ahead_s: seconds(stamp - now.0),
             });
         }
+        // The signature before the replay state: a forged frame is a forgery, whatever its
+        // timestamp; only a validly signed frame can be a replay.
+        let mut expected = [0u8; 6];
+        frame.calculate_signature(&key.0, &mut expected);
+        // Compare every byte whatever the first difference, so that timing tells nothing.
+        let difference = expected
+            .iter()
+            .zip(frame.signature_value())
+            .fold(0u8, |acc, (a, b)| acc | (a ^ b));
+        if difference != 0 {
+            return Err(SignatureError::WrongSignature);
+        }
         let current = self.current.max(now.0);
         match self.streams.get(&stream) {
             Some(&last) if stamp <= last => {
@@ -234,16 +246,6 @@ impl ReplayGuard {
                 });
             }
             None => {}
-        }
-        let mut expected = [0u8; 6];
-        frame.calculate_signature(&key.0, &mut expected);
-        // Compare every byte whatever the first difference, so that timing tells nothing.
-        let difference = expected
-            .iter()
-            .zip(frame.signature_value())
-            .fold(0u8, |acc, (a, b)| acc | (a ^ b));
-        if difference != 0 {
-            return Err(SignatureError::WrongSignature);
         }
         if self.streams.len() >= MAX_STREAMS && !self.streams.contains_key(&stream) {
             // Forget the stalest stream: its sender has long been quiet.

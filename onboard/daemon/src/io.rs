@@ -34,8 +34,8 @@ use mavlink::dialects::common::{
 };
 use mavlink::error::MessageReadError;
 use mavlink::{
-    Connectable, MAVLinkMessageRaw, MAVLinkV2MessageRaw, MavConnection, MavHeader, Message,
-    SigningData, UdpConfig, UdpMode,
+    Connectable, MAVLinkMessageRaw, MAVLinkV2MessageRaw, MavConnection, MavHeader, MavlinkReader,
+    Message, SigningData, UdpConfig, UdpMode,
 };
 
 use crate::control::{AutopilotCommand, DaemonCore, Millis, OnboardPolicy, Setpoint, Status};
@@ -44,6 +44,7 @@ use skyherd_link::AUTOPILOT_COMPONENT_ID;
 /// Our MAVLink component id: `MAV_COMP_ID_ONBOARD_COMPUTER`.
 pub use skyherd_link::DAEMON_COMPONENT_ID as COMPONENT_ID;
 use skyherd_link::command::{command_long, velocity_setpoint_ned};
+use skyherd_link::replay::{ReplayGuard, ReplayStateError, SignatureError, SigningTime};
 use skyherd_link::signing::{SigningKey, signing_data};
 /// HEARTBEAT period, ms of the daemon's clock.
 pub const HEARTBEAT_PERIOD: Duration = Duration::from_millis(1000);
@@ -78,6 +79,11 @@ pub struct LinkOptions {
     pub ground: String,
     /// MAVLink 2 signing key for the ground link; `None` accepts unsigned uplink (tests only).
     pub signing_key: Option<[u8; KEY_LEN]>,
+    /// Where the uplink's replay state (per-stream signing timestamps) is kept across restarts:
+    /// read at start, written at most once a second while it changes and when the daemon
+    /// stops. `None`: kept in memory only (a restart then refuses only frames over a minute
+    /// old).
+    pub replay_state: Option<std::path::PathBuf>,
     /// Clock source.
     pub clock: ClockMode,
 }
@@ -96,6 +102,13 @@ pub enum IoError {
     },
     /// The key file is not a 32-byte key.
     BadKey(String),
+    /// The replay state file cannot be read or is not one.
+    ReplayState {
+        /// The file.
+        path: String,
+        /// Why.
+        why: String,
+    },
     /// The control rate is below [`MIN_RATE_HZ`] (or not a number).
     BadRate(f32),
     /// Both reader threads stopped.
@@ -111,6 +124,9 @@ impl fmt::Display for IoError {
                 source,
             } => write!(f, "cannot open the {link} link {address:?}: {source}"),
             IoError::BadKey(why) => write!(f, "bad signing key: {why}"),
+            IoError::ReplayState { path, why } => {
+                write!(f, "replay state file {path}: {why}")
+            }
             IoError::BadRate(hz) => {
                 write!(
                     f,
@@ -168,8 +184,13 @@ pub fn parse_key(bytes: &[u8]) -> Result<[u8; KEY_LEN], IoError> {
 pub enum UplinkRejection {
     /// Signing is required and the frame carries no signature (or is MAVLink 1).
     Unsigned,
-    /// The signature does not match the key, or replays an old timestamp.
+    /// The signature does not match the key.
     BadSignature,
+    /// A validly signed frame replayed: not newer than its stream's last, or a new stream
+    /// over a minute old.
+    Replayed,
+    /// A timestamp over a minute ahead of this computer's clock.
+    FromTheFuture,
     /// The payload does not parse as a `common` message (bad enum value, unknown id).
     Malformed,
 }
@@ -181,8 +202,12 @@ pub struct UplinkCounters {
     pub accepted: u64,
     /// Dropped: no signature while one is required.
     pub unsigned: u64,
-    /// Dropped: wrong signature or replay.
+    /// Dropped: wrong signature.
     pub bad_signature: u64,
+    /// Dropped: replayed (old timestamp on its stream, or a new stream over a minute old).
+    pub replayed: u64,
+    /// Dropped: timestamp too far in the future.
+    pub from_the_future: u64,
     /// Dropped: payload does not parse.
     pub malformed: u64,
     /// TUNNEL frames for another system, ignored.
@@ -191,19 +216,24 @@ pub struct UplinkCounters {
     pub tunnel_chunks: u64,
 }
 
-/// Checks ground frames: signature first, then that the payload parses. Pure apart from the
-/// signing state's replay protection (which reads the system clock, as the MAVLink signing
-/// specification asks).
+/// Checks ground frames: signature and replay state first, then that the payload parses.
+/// Pure: the signing clock comes in with each frame.
 pub struct UplinkGate {
-    signing: Option<SigningData>,
+    signing: Option<(SigningKey, SigningData, ReplayGuard)>,
     counters: UplinkCounters,
 }
 
 impl UplinkGate {
-    /// A gate requiring signatures made with `key`, or accepting everything without one.
-    pub fn new(key: Option<[u8; KEY_LEN]>) -> Self {
+    /// A gate requiring signatures made with `key` (replay state fresh at `now`), or
+    /// accepting everything without one.
+    pub fn new(key: Option<[u8; KEY_LEN]>, now: SigningTime) -> Self {
+        Self::with_replay_state(key, ReplayGuard::new(now))
+    }
+
+    /// A gate whose replay state was read back from a file.
+    pub fn with_replay_state(key: Option<[u8; KEY_LEN]>, guard: ReplayGuard) -> Self {
         UplinkGate {
-            signing: key.map(|k| signing_data(&SigningKey(k), 0)),
+            signing: key.map(|k| (SigningKey(k), signing_data(&SigningKey(k), 0), guard)),
             counters: UplinkCounters::default(),
         }
     }
@@ -213,36 +243,56 @@ impl UplinkGate {
         self.counters
     }
 
-    /// Checks one raw frame and parses it.
+    /// The replay state, when signing.
+    pub fn replay_state(&self) -> Option<&ReplayGuard> {
+        self.signing.as_ref().map(|(_, _, guard)| guard)
+    }
+
+    /// The replay state, to mark it saved.
+    fn replay_state_mut(&mut self) -> Option<&mut ReplayGuard> {
+        self.signing.as_mut().map(|(_, _, guard)| guard)
+    }
+
+    /// Checks one raw frame at signing time `now` and parses it.
     pub fn accept(
         &mut self,
         raw: &MAVLinkMessageRaw,
+        now: SigningTime,
     ) -> Result<(MavHeader, MavMessage), UplinkRejection> {
-        let verdict = self.check(raw);
+        let verdict = self.check(raw, now);
         match verdict {
             Ok(_) => self.counters.accepted += 1,
             Err(UplinkRejection::Unsigned) => self.counters.unsigned += 1,
             Err(UplinkRejection::BadSignature) => self.counters.bad_signature += 1,
+            Err(UplinkRejection::Replayed) => self.counters.replayed += 1,
+            Err(UplinkRejection::FromTheFuture) => self.counters.from_the_future += 1,
             Err(UplinkRejection::Malformed) => self.counters.malformed += 1,
         }
         verdict
     }
 
-    fn check(&self, raw: &MAVLinkMessageRaw) -> Result<(MavHeader, MavMessage), UplinkRejection> {
-        const IFLAG_SIGNED: u8 = 0x01;
-        if let Some(signing) = &self.signing {
+    fn check(
+        &mut self,
+        raw: &MAVLinkMessageRaw,
+        now: SigningTime,
+    ) -> Result<(MavHeader, MavMessage), UplinkRejection> {
+        // Parse first (pure, no state): a frame that does not parse must not move the replay
+        // state either.
+        let message = MavMessage::parse(raw.version(), raw.message_id(), raw.payload())
+            .map_err(|_| UplinkRejection::Malformed)?;
+        if let Some((key, _, guard)) = &mut self.signing {
             let MAVLinkMessageRaw::V2(v2) = raw else {
                 return Err(UplinkRejection::Unsigned);
             };
-            if v2.incompatibility_flags() & IFLAG_SIGNED == 0 {
-                return Err(UplinkRejection::Unsigned);
-            }
-            if !signing.verify_signature(v2) {
-                return Err(UplinkRejection::BadSignature);
-            }
+            guard.verify(key, v2, now).map_err(|e| match e {
+                SignatureError::Unsigned => UplinkRejection::Unsigned,
+                SignatureError::WrongSignature => UplinkRejection::BadSignature,
+                SignatureError::Replayed { .. } | SignatureError::TooOld { .. } => {
+                    UplinkRejection::Replayed
+                }
+                SignatureError::FromTheFuture { .. } => UplinkRejection::FromTheFuture,
+            })?;
         }
-        let message = MavMessage::parse(raw.version(), raw.message_id(), raw.payload())
-            .map_err(|_| UplinkRejection::Malformed)?;
         let header = MavHeader {
             system_id: raw.system_id(),
             component_id: raw.component_id(),
@@ -252,17 +302,56 @@ impl UplinkGate {
     }
 
     /// Signs `message` for the ground if a key is set; plain MAVLink 2 otherwise.
-    fn seal(&self, header: MavHeader, message: &MavMessage) -> MAVLinkMessageRaw {
+    fn seal(&self, header: MavHeader, message: &MavMessage) -> MAVLinkV2MessageRaw {
         let mut raw = MAVLinkV2MessageRaw::new();
         match &self.signing {
-            Some(signing) => {
+            Some((_, signer, _)) => {
                 raw.serialize_message_for_signing(header, message);
-                signing.sign_message(&mut raw);
+                signer.sign_message(&mut raw);
             }
             None => raw.serialize_message(header, message),
         }
-        MAVLinkMessageRaw::V2(raw)
+        raw
     }
+}
+
+/// Reads the replay state file at `path`: a missing file is a fresh state at `now` (the first
+/// start), anything else that is not a state file is an error naming it.
+///
+/// # Errors
+/// [`IoError::ReplayState`] when the file exists but cannot be read or parsed.
+pub fn load_replay_state(path: &std::path::Path, now: SigningTime) -> Result<ReplayGuard, IoError> {
+    use std::io::Read;
+    let bad = |why: String| IoError::ReplayState {
+        path: path.display().to_string(),
+        why,
+    };
+    let file = match std::fs::File::open(path) {
+        Ok(file) => file,
+        Err(e) if e.kind() == io::ErrorKind::NotFound => return Ok(ReplayGuard::new(now)),
+        Err(e) => return Err(bad(e.to_string())),
+    };
+    let mut bytes = Vec::new();
+    // A state file of MAX_STREAMS entries is under 50 kB.
+    file.take(1 << 20)
+        .read_to_end(&mut bytes)
+        .map_err(|e| bad(e.to_string()))?;
+    let guard =
+        ReplayGuard::from_bytes(&bytes).map_err(|e: ReplayStateError| bad(e.to_string()))?;
+    info!(
+        "replay state read from {}: frames signed before {:?} stay refused",
+        path.display(),
+        guard.current()
+    );
+    Ok(guard)
+}
+
+/// Writes the replay state to `path` whole: a temporary file beside it, then a rename, so that
+/// a crash mid-write leaves the previous state.
+fn save_replay_state(path: &std::path::Path, guard: &ReplayGuard) -> io::Result<()> {
+    let tmp = path.with_extension("tmp");
+    std::fs::write(&tmp, guard.to_bytes())?;
+    std::fs::rename(&tmp, path)
 }
 
 /// The daemon's time in lockstep mode, from the autopilot's `time_boot_ms`, kept monotonic
@@ -335,15 +424,36 @@ pub struct ShellCounters {
 enum Event {
     Autopilot(MavHeader, Box<MavMessage>),
     AutopilotMalformed,
-    Ground(Box<MAVLinkMessageRaw>),
+    /// A frame from the ground link, with the datagram's sender where the link is UDP.
+    Ground(Box<MAVLinkMessageRaw>, Option<SocketAddr>),
     GroundMalformed,
 }
+
+/// The ground link. UDP is read datagram by datagram here, not through the `mavlink` crate's
+/// connection, whose `udpin` mode answers whoever sent the last datagram, however it was
+/// signed: one junk byte redirected the daemon's signed heartbeats to its sender. Here the
+/// daemon answers only the address of the last frame that passed the uplink gate.
+enum GroundLink {
+    Udp {
+        socket: UdpSocket,
+        /// `udpout`: the socket is connected to the ground's address.
+        connected: bool,
+    },
+    /// Serial, TCP: one peer by construction.
+    Other(Arc<Link>),
+}
+
+/// Largest MAVLink 2 frame: 12 header and CRC bytes, 255 payload, 13 signature.
+const MAX_DATAGRAM: usize = 280 * 8;
 
 /// A running daemon: both links open, the core inside.
 pub struct Daemon<P> {
     core: DaemonCore<P>,
     autopilot: Arc<Link>,
-    ground: Arc<Link>,
+    ground: GroundLink,
+    /// Where the last authenticated ground frame came from: the only address answered.
+    ground_peer: Option<SocketAddr>,
+    replay_state: Option<std::path::PathBuf>,
     ground_local: Option<SocketAddr>,
     autopilot_local: Option<SocketAddr>,
     events: Receiver<Event>,
@@ -402,6 +512,85 @@ fn open_link(link: &'static str, address: &str) -> Result<(Link, Option<SocketAd
     }
 }
 
+/// Opens the ground link: UDP as a plain socket read by [`spawn_datagram_reader`], anything
+/// else through the `mavlink` crate.
+fn open_ground(
+    address: &str,
+) -> Result<(GroundLink, Option<SocketAddr>, Option<Arc<Link>>), IoError> {
+    let err = |source| IoError::Connect {
+        link: "ground",
+        address: address.to_string(),
+        source,
+    };
+    let (socket, connected) = if let Some(target) = address.strip_prefix("udpin:") {
+        (UdpSocket::bind(target).map_err(err)?, false)
+    } else if let Some(target) = address.strip_prefix("udpout:") {
+        let socket = UdpSocket::bind("0.0.0.0:0").map_err(err)?;
+        socket.connect(target).map_err(err)?;
+        (socket, true)
+    } else {
+        let (link, local) = open_link("ground", address)?;
+        let link = Arc::new(link);
+        return Ok((GroundLink::Other(link.clone()), local, Some(link)));
+    };
+    socket.set_read_timeout(Some(READ_TIMEOUT)).map_err(err)?;
+    let local = socket.local_addr().map_err(err)?;
+    Ok((GroundLink::Udp { socket, connected }, Some(local), None))
+}
+
+/// Reads the ground's UDP socket until `stop`: every frame of every datagram, with its sender.
+/// Empty and junk datagrams are counted as malformed at once (no sleeping on them).
+fn spawn_datagram_reader(socket: UdpSocket, events: Sender<Event>, stop: Arc<AtomicBool>) {
+    let body = move || {
+        let mut buffer = vec![0u8; MAX_DATAGRAM];
+        while !stop.load(Ordering::Relaxed) {
+            let (len, from) = match socket.recv_from(&mut buffer) {
+                Ok(got) => got,
+                Err(e)
+                    if matches!(
+                        e.kind(),
+                        io::ErrorKind::WouldBlock | io::ErrorKind::TimedOut
+                    ) =>
+                {
+                    continue;
+                }
+                Err(e) => {
+                    // Refused (an ICMP error from an earlier send) or a real fault: the next
+                    // datagram may be fine; a short pause keeps a broken socket from spinning.
+                    debug!("ground: read error: {e}");
+                    thread::sleep(Duration::from_millis(5));
+                    continue;
+                }
+            };
+            let mut reader = MavlinkReader::new(&buffer[..len]);
+            let mut frames = 0;
+            loop {
+                match reader.read_any_raw_message::<MavMessage>() {
+                    Ok(raw) => {
+                        frames += 1;
+                        if events
+                            .send(Event::Ground(Box::new(raw), Some(from)))
+                            .is_err()
+                        {
+                            return;
+                        }
+                    }
+                    Err(_) => break,
+                }
+            }
+            if frames == 0 && events.send(Event::GroundMalformed).is_err() {
+                return;
+            }
+        }
+    };
+    if let Err(e) = thread::Builder::new()
+        .name("ground-reader".into())
+        .spawn(body)
+    {
+        warn!("cannot start the ground reader: {e}");
+    }
+}
+
 /// Reads one link until `stop`; `raw` selects unparsed frames (the ground link, whose
 /// signatures are checked by the daemon thread so that rejections can be counted).
 fn spawn_reader(
@@ -415,7 +604,7 @@ fn spawn_reader(
         while !stop.load(Ordering::Relaxed) {
             let event = if raw {
                 match link.recv_raw() {
-                    Ok(frame) => Ok(Event::Ground(Box::new(frame))),
+                    Ok(frame) => Ok(Event::Ground(Box::new(frame), None)),
                     Err(e) => Err(e),
                 }
             } else {
@@ -487,10 +676,14 @@ impl<P: OnboardPolicy> Daemon<P> {
                 warn!("control rate {rate_hz} Hz is below the 10 Hz the actor was designed for");
             }
         }
+        let now = SigningTime::now();
+        let guard = match &options.replay_state {
+            Some(path) => load_replay_state(path, now)?,
+            None => ReplayGuard::new(now),
+        };
         let (autopilot, autopilot_local) = open_link("autopilot", &options.autopilot)?;
-        let (ground, ground_local) = open_link("ground", &options.ground)?;
+        let (ground, ground_local, ground_mavlink) = open_ground(&options.ground)?;
         let autopilot = Arc::new(autopilot);
-        let ground = Arc::new(ground);
         let stop = Arc::new(AtomicBool::new(false));
         let (tx, rx) = mpsc::channel();
         spawn_reader(
@@ -500,7 +693,20 @@ impl<P: OnboardPolicy> Daemon<P> {
             tx.clone(),
             stop.clone(),
         );
-        spawn_reader("ground", ground.clone(), true, tx, stop.clone());
+        match (&ground, ground_mavlink) {
+            (GroundLink::Udp { socket, .. }, _) => {
+                let reader = socket.try_clone().map_err(|source| IoError::Connect {
+                    link: "ground",
+                    address: options.ground.clone(),
+                    source,
+                })?;
+                spawn_datagram_reader(reader, tx, stop.clone());
+            }
+            (GroundLink::Other(_), Some(link)) => {
+                spawn_reader("ground", link, true, tx, stop.clone());
+            }
+            (GroundLink::Other(_), None) => {}
+        }
         if options.signing_key.is_none() {
             warn!("no signing key: uplink frames are accepted unauthenticated");
         }
@@ -515,10 +721,12 @@ impl<P: OnboardPolicy> Daemon<P> {
             core,
             autopilot,
             ground,
+            ground_peer: None,
+            replay_state: options.replay_state.clone(),
             ground_local,
             autopilot_local,
             events: rx,
-            gate: UplinkGate::new(options.signing_key),
+            gate: UplinkGate::with_replay_state(options.signing_key, guard),
             clock: options.clock,
             boot_clock: BootClock::default(),
             counters: ShellCounters::default(),
@@ -562,7 +770,12 @@ impl<P: OnboardPolicy> Daemon<P> {
         let mut now = Millis(0);
         let mut next_tick = Millis(0);
         let mut next_heartbeat = Millis(0);
+        let mut last_state_save = Instant::now();
         while !self.stop.load(Ordering::Relaxed) {
+            if last_state_save.elapsed() >= Duration::from_secs(1) {
+                self.save_replay_state();
+                last_state_save = Instant::now();
+            }
             let wait = match self.clock {
                 ClockMode::Wall { .. } => next_tick.since(wall_now()).min(READ_TIMEOUT),
                 ClockMode::Simulator => READ_TIMEOUT,
@@ -629,6 +842,7 @@ impl<P: OnboardPolicy> Daemon<P> {
                 next_heartbeat = now.after(HEARTBEAT_PERIOD);
             }
         }
+        self.save_replay_state();
         info!(
             "stopping; counters: {:?}; core: {:?}",
             self.counters(),
@@ -658,6 +872,28 @@ impl<P: OnboardPolicy> Daemon<P> {
         }
     }
 
+    /// Writes the replay state when it changed (a failure is logged: flying on beats stopping,
+    /// and the state in memory still guards this run).
+    fn save_replay_state(&mut self) {
+        let Some(path) = &self.replay_state else {
+            return;
+        };
+        let Some(guard) = self.gate.replay_state() else {
+            return;
+        };
+        if !guard.is_dirty() {
+            return;
+        }
+        match save_replay_state(path, guard) {
+            Ok(()) => {
+                if let Some(guard) = self.gate.replay_state_mut() {
+                    guard.mark_saved();
+                }
+            }
+            Err(e) => warn!("cannot write the replay state {}: {e}", path.display()),
+        }
+    }
+
     fn is_our_autopilot(&self, header: &MavHeader) -> bool {
         header.system_id == u32::from(self.core.config().system_id)
     }
@@ -667,7 +903,7 @@ impl<P: OnboardPolicy> Daemon<P> {
             Event::Autopilot(header, message) => self.handle_autopilot(now, header, *message),
             Event::AutopilotMalformed => self.counters.autopilot.malformed += 1,
             Event::GroundMalformed => self.gate.counters.malformed += 1,
-            Event::Ground(raw) => self.handle_ground(now, &raw),
+            Event::Ground(raw, from) => self.handle_ground(now, &raw, from),
         }
     }
 
@@ -721,9 +957,15 @@ impl<P: OnboardPolicy> Daemon<P> {
         }
     }
 
-    fn handle_ground(&mut self, now: Millis, raw: &MAVLinkMessageRaw) {
-        let (header, message) = match self.gate.accept(raw) {
-            Ok(accepted) => accepted,
+    fn handle_ground(&mut self, now: Millis, raw: &MAVLinkMessageRaw, from: Option<SocketAddr>) {
+        let (header, message) = match self.gate.accept(raw, SigningTime::now()) {
+            Ok(accepted) => {
+                // Only an authenticated frame tells where the ground is.
+                if from.is_some() {
+                    self.ground_peer = from;
+                }
+                accepted
+            }
             Err(why) => {
                 debug!(
                     "uplink frame from system {} dropped: {why:?}",
@@ -824,7 +1066,22 @@ impl<P: OnboardPolicy> Daemon<P> {
         header.sequence = self.ground_sequence;
         self.ground_sequence = self.ground_sequence.wrapping_add(1);
         let sealed = self.gate.seal(header, message);
-        if let Err(e) = self.ground.send_raw(&sealed) {
+        let sent = match &self.ground {
+            GroundLink::Udp {
+                socket,
+                connected: true,
+            } => socket.send(sealed.raw_bytes()).map(|_| ()),
+            GroundLink::Udp { socket, .. } => match self.ground_peer {
+                Some(peer) => socket.send_to(sealed.raw_bytes(), peer).map(|_| ()),
+                // Nobody has proved to be the ground yet: say nothing.
+                None => Ok(()),
+            },
+            GroundLink::Other(link) => link
+                .send_raw(&MAVLinkMessageRaw::V2(sealed))
+                .map(|_| ())
+                .map_err(|e| io::Error::other(e.to_string())),
+        };
+        if let Err(e) = sent {
             debug!("ground send failed: {e}");
         }
     }
@@ -909,21 +1166,28 @@ mod tests {
 
     /// What a ground station with `key` puts on the wire.
     fn signed_by(key: [u8; KEY_LEN]) -> MAVLinkMessageRaw {
-        UplinkGate::new(Some(key)).seal(header(), &tunnel())
+        MAVLinkMessageRaw::V2(UplinkGate::new(Some(key), now()).seal(header(), &tunnel()))
+    }
+
+    fn now() -> SigningTime {
+        SigningTime::now()
     }
 
     #[test]
     fn the_gate_takes_only_frames_signed_with_its_key() {
-        let mut gate = UplinkGate::new(Some(KEY));
-        let (h, m) = gate.accept(&signed_by(KEY)).unwrap();
+        let mut gate = UplinkGate::new(Some(KEY), now());
+        let (h, m) = gate.accept(&signed_by(KEY), now()).unwrap();
         assert_eq!((h.system_id, m), (255, tunnel()));
         assert_eq!(
-            gate.accept(&signed_by([8; KEY_LEN])).err(),
+            gate.accept(&signed_by([8; KEY_LEN]), now()).err(),
             Some(UplinkRejection::BadSignature)
         );
         assert_eq!(
-            gate.accept(&UplinkGate::new(None).seal(header(), &tunnel()))
-                .err(),
+            gate.accept(
+                &MAVLinkMessageRaw::V2(UplinkGate::new(None, now()).seal(header(), &tunnel())),
+                now()
+            )
+            .err(),
             Some(UplinkRejection::Unsigned)
         );
         let c = gate.counters();
@@ -932,24 +1196,77 @@ mod tests {
 
     #[test]
     fn a_replayed_frame_is_refused() {
-        let mut gate = UplinkGate::new(Some(KEY));
+        let mut gate = UplinkGate::new(Some(KEY), now());
         let frame = signed_by(KEY);
-        assert!(gate.accept(&frame).is_ok());
+        assert!(gate.accept(&frame, now()).is_ok());
         assert_eq!(
-            gate.accept(&frame).err(),
-            Some(UplinkRejection::BadSignature)
+            gate.accept(&frame, now()).err(),
+            Some(UplinkRejection::Replayed)
         );
+    }
+
+    #[test]
+    fn a_frame_dated_a_year_ahead_is_refused() {
+        let mut gate = UplinkGate::new(Some(KEY), now());
+        let mut raw = MAVLinkV2MessageRaw::new();
+        raw.serialize_message_for_signing(header(), &tunnel());
+        let year = now().plus_seconds(365.0 * 86_400.0);
+        skyherd_link::replay::sign(&SigningKey(KEY), 0, year, &mut raw);
+        assert_eq!(
+            gate.accept(&MAVLinkMessageRaw::V2(raw), now()).err(),
+            Some(UplinkRejection::FromTheFuture)
+        );
+        assert_eq!(gate.counters().from_the_future, 1);
+    }
+
+    #[test]
+    fn a_restarted_daemon_refuses_a_frame_it_took_before_the_restart() {
+        let dir = std::env::temp_dir().join(format!("skyherd-replay-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).expect("dir");
+        let path = dir.join("uplink.replay");
+        let _ = std::fs::remove_file(&path);
+        let start = signed_by(KEY);
+        let mut gate = UplinkGate::with_replay_state(
+            Some(KEY),
+            load_replay_state(&path, now()).expect("a missing file is a fresh state"),
+        );
+        assert!(gate.accept(&start, now()).is_ok());
+        save_replay_state(&path, gate.replay_state().expect("signing")).expect("saved");
+        // A restart: the state comes back from the file, and the Start is refused although
+        // it is seconds old (inside the one-minute window for new streams).
+        let mut restarted = UplinkGate::with_replay_state(
+            Some(KEY),
+            load_replay_state(&path, now()).expect("read"),
+        );
+        assert_eq!(
+            restarted.accept(&start, now()).err(),
+            Some(UplinkRejection::Replayed)
+        );
+        assert!(restarted.accept(&signed_by(KEY), now()).is_ok());
+        // Without the file it would have been taken.
+        let mut forgetful = UplinkGate::new(Some(KEY), now());
+        assert!(forgetful.accept(&start, now()).is_ok());
+        // A file that is not a replay state is an error naming it.
+        std::fs::write(&path, b"not a state").expect("write");
+        let err = load_replay_state(&path, now())
+            .expect_err("refused")
+            .to_string();
+        assert!(err.contains("uplink.replay"), "{err}");
+        std::fs::remove_dir_all(&dir).expect("cleanup");
     }
 
     #[test]
     fn every_empty_datagram_is_counted_as_malformed_and_the_next_frame_still_arrives() {
         // The reader once slept 20 ms on each empty datagram without counting it: a flood of
         // them slowed the uplink to 50 frames a second, unseen.
-        let (link, local) = open_link("ground", "udpin:127.0.0.1:0").expect("a loopback link");
+        let (link, local, _) = open_ground("udpin:127.0.0.1:0").expect("a loopback link");
         let local = local.expect("a UDP link has an address");
         let (events, heard) = mpsc::channel();
         let stop = Arc::new(AtomicBool::new(false));
-        spawn_reader("ground", Arc::new(link), true, events, stop.clone());
+        let GroundLink::Udp { socket, .. } = link else {
+            panic!("udpin is a UDP link");
+        };
+        spawn_datagram_reader(socket, events, stop.clone());
         let attacker = UdpSocket::bind("127.0.0.1:0").expect("socket");
         for _ in 0..100 {
             attacker.send_to(&[], local).expect("send");
@@ -964,7 +1281,8 @@ mod tests {
             let left = deadline.saturating_duration_since(std::time::Instant::now());
             match heard.recv_timeout(left) {
                 Ok(Event::GroundMalformed) => malformed += 1,
-                Ok(Event::Ground(raw)) => {
+                Ok(Event::Ground(raw, from)) => {
+                    assert_eq!(from, Some(attacker.local_addr().expect("addr")));
                     let MAVLinkMessageRaw::V2(raw) = *raw else {
                         panic!("a MAVLink 2 frame was sent");
                     };
@@ -981,15 +1299,13 @@ mod tests {
 
     #[test]
     fn an_unknown_tunnel_payload_type_is_malformed_not_a_panic() {
-        let mut gate = UplinkGate::new(None);
-        let MAVLinkMessageRaw::V2(mut raw) = gate.seal(header(), &tunnel()) else {
-            unreachable!()
-        };
+        let mut gate = UplinkGate::new(None, now());
+        let mut raw = gate.seal(header(), &tunnel());
         // payload_type is the payload's first field (u16): 7 is no MAV_TUNNEL_PAYLOAD_TYPE.
         const V2_HEADER_LEN: usize = 10;
         raw.as_mut_slice()[V2_HEADER_LEN] = 7;
         assert_eq!(
-            gate.accept(&MAVLinkMessageRaw::V2(raw)).err(),
+            gate.accept(&MAVLinkMessageRaw::V2(raw), now()).err(),
             Some(UplinkRejection::Malformed)
         );
         assert_eq!(gate.counters().malformed, 1);
@@ -1005,7 +1321,7 @@ mod tests {
             seed
         };
         for key in [None, Some(KEY)] {
-            let mut gate = UplinkGate::new(key);
+            let mut gate = UplinkGate::new(key, now());
             for _ in 0..20_000 {
                 let mut bytes = [0u8; mavlink::consts::MAX_FRAME_SIZE];
                 for b in bytes.iter_mut() {
@@ -1013,11 +1329,16 @@ mod tests {
                 }
                 bytes[0] = mavlink::MAV_STX_V2;
                 let raw = MAVLinkMessageRaw::V2(MAVLinkV2MessageRaw::from_bytes_unparsed(bytes));
-                let _ = gate.accept(&raw);
+                let _ = gate.accept(&raw, now());
             }
             let c = gate.counters();
             assert_eq!(
-                c.accepted + c.unsigned + c.bad_signature + c.malformed,
+                c.accepted
+                    + c.unsigned
+                    + c.bad_signature
+                    + c.replayed
+                    + c.from_the_future
+                    + c.malformed,
                 20_000
             );
             if key.is_some() {

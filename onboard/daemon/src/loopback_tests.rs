@@ -132,6 +132,7 @@ fn daemon_flies_a_fake_px4_and_rejects_forged_uplink() {
         let options = LinkOptions {
             autopilot: format!("udpout:{autopilot_addr}"),
             ground: "udpin:127.0.0.1:0".to_string(),
+            replay_state: None,
             signing_key: Some(KEY),
             clock: ClockMode::Wall { rate_hz: 20.0 },
         };
@@ -360,6 +361,7 @@ fn daemon_startup_errors_are_clear() {
     let options = LinkOptions {
         autopilot: "bogus:nowhere".to_string(),
         ground: "udpin:127.0.0.1:0".to_string(),
+        replay_state: None,
         signing_key: None,
         clock: ClockMode::Simulator,
     };
@@ -385,6 +387,7 @@ fn sim_clock_ticks_once_per_position_at_simulator_time() {
         let options = LinkOptions {
             autopilot: format!("udpout:{autopilot_addr}"),
             ground: "udpin:127.0.0.1:0".to_string(),
+            replay_state: None,
             signing_key: Some(KEY),
             clock: ClockMode::Simulator,
         };

@@ -13,9 +13,10 @@ use std::path::{Path, PathBuf};
 use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand, ValueEnum};
 use skyherd_daemon::control::{CoreConfig, DaemonCore};
-use skyherd_daemon::io::{ClockMode, Daemon, LinkOptions, parse_key};
+use skyherd_daemon::io::{ClockMode, Daemon, LinkOptions};
 use skyherd_daemon::selftest;
 use skyherd_link::Flavour;
+use skyherd_link::SigningKey;
 use skyherd_onboard::actor::Actor;
 use skyherd_onboard::separation::SeparationConfig;
 
@@ -62,6 +63,10 @@ struct RunArgs {
     /// for bench tests only.
     #[arg(long)]
     insecure: bool,
+    /// Keep the uplink's replay state (per-stream signing timestamps) in this file, so that a
+    /// restarted daemon still refuses frames it accepted before [default: in memory only].
+    #[arg(long)]
+    replay_state: Option<PathBuf>,
     /// This drone's MAVLink system id (its autopilot's).
     #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u8).range(1..=254))]
     system_id: u8,
@@ -121,9 +126,9 @@ fn run(args: RunArgs) -> Result<()> {
     let actor = Actor::from_bytes(&model_bytes)
         .with_context(|| format!("model file {} is not usable", args.model.display()))?;
     let signing_key = match &args.key {
-        Some(path) => {
-            Some(parse_key(&read(path, "key file")?).with_context(|| path.display().to_string())?)
-        }
+        // Checked as the ground checks its keys: 32 raw bytes or 64 hex digits, at most 4 KiB
+        // read, and (on Unix) no access for group or others.
+        Some(path) => Some(SigningKey::from_file(path)?.0),
         None if args.insecure => {
             log::warn!("--insecure: unsigned uplink is accepted from anyone on the ground port");
             None
@@ -179,6 +184,7 @@ fn run(args: RunArgs) -> Result<()> {
         autopilot: args.autopilot,
         ground: args.ground,
         signing_key,
+        replay_state: args.replay_state,
         clock,
     };
     log::info!(
