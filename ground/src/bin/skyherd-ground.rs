@@ -2,10 +2,11 @@
 //! detections, hears the fleet, sends world snapshots up to every drone and runs the mission.
 //!
 //! ```text
-//! skyherd-ground mission --fleet udpin:127.0.0.1:14550 \
-//!     --drone 1=udpout:127.0.0.1:14601 --drone 2=udpout:127.0.0.1:14602 \
+//! skyherd-ground keygen --dir keys --drones 1,2 --fleet     # one key per drone, and the fleet's
+//! skyherd-ground mission --fleet udpin:127.0.0.1:14550 --fleet-key keys/fleet.key \
+//!     --drone 1=udpout:127.0.0.1:14601 --drone 2=udpout:127.0.0.1:14602 --key-dir keys \
 //!     --task driving --goal 8,8 --goal-radius 1.5 --area 10,10,3 --max-speed 1.5 \
-//!     --targets 4 --key uplink.key --tlog out/ground.tlog --csv out/ground.csv
+//!     --targets 4 --tlog out/ground.tlog --csv out/ground.csv
 //! ```
 //!
 //! The mission loop is `skyherd_ground::station::GroundStation`, a pure core: this program
@@ -39,6 +40,23 @@ struct Cli {
 enum Command {
     /// Run one mission: track, uplink, start, watch, finish; prints a JSON summary.
     Mission(MissionArgs),
+    /// Make signing keys from the operating system's randomness: `drone-ID.key` for each
+    /// drone (shared by the ground and that drone only) and, with --fleet, `fleet.key` (the
+    /// autopilots' and the sensor's link). Files are created 0600 and never overwritten.
+    Keygen(KeygenArgs),
+}
+
+#[derive(clap::Args, Debug)]
+struct KeygenArgs {
+    /// Folder for the keys, created 0700 if missing.
+    #[arg(long)]
+    dir: PathBuf,
+    /// System ids of the drones, comma-separated (1..=254).
+    #[arg(long, value_delimiter = ',', required = true, value_parser = clap::value_parser!(u8).range(1..=254))]
+    drones: Vec<u8>,
+    /// Also make `fleet.key`.
+    #[arg(long)]
+    fleet: bool,
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -56,10 +74,17 @@ struct MissionArgs {
     /// order given).
     #[arg(long = "drone", required = true)]
     drones: Vec<String>,
-    /// MAVLink 2 signing key (32 raw bytes or 64 hex digits) for the uplinks to the drones'
-    /// onboard computers.
+    /// A folder of per-drone uplink keys, `drone-ID.key` (as `keygen` makes them): each drone
+    /// is signed to with its own key, so a frame for one drone is refused by every other.
+    #[arg(long, conflicts_with = "key")]
+    key_dir: Option<PathBuf>,
+    /// One MAVLink 2 signing key (32 raw bytes or 64 hex digits) for every drone's uplink
+    /// (prefer --key-dir: with one key, a frame for one drone passes every drone's check).
     #[arg(long)]
     key: Option<PathBuf>,
+    /// Send unsigned uplink (bench tests only).
+    #[arg(long, conflicts_with_all = ["key", "key_dir"])]
+    insecure: bool,
     /// Signing key for the fleet link (autopilot telemetry and sensor scans) [default: unsigned].
     #[arg(long)]
     fleet_key: Option<PathBuf>,
@@ -137,8 +162,39 @@ fn parse_drone(text: &str) -> Result<(u8, String)> {
     Ok((id, address.to_string()))
 }
 
+/// `keygen`: one fresh key per drone (and the fleet's), each in a new 0600 file.
+fn keygen(args: &KeygenArgs) -> Result<()> {
+    let mut builder = std::fs::DirBuilder::new();
+    builder.recursive(true);
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::DirBuilderExt;
+        builder.mode(0o700);
+    }
+    builder
+        .create(&args.dir)
+        .with_context(|| format!("creating {}", args.dir.display()))?;
+    let mut names: Vec<String> = args
+        .drones
+        .iter()
+        .map(|id| format!("drone-{id}.key"))
+        .collect();
+    if args.fleet {
+        names.push("fleet.key".into());
+    }
+    for name in names {
+        let path = args.dir.join(&name);
+        SigningKey::generate()?.write_new_file(&path)?;
+        println!("{}", path.display());
+    }
+    Ok(())
+}
+
 fn main() -> Result<()> {
-    let Command::Mission(args) = Cli::parse().command;
+    let args = match Cli::parse().command {
+        Command::Mission(args) => args,
+        Command::Keygen(args) => return keygen(&args),
+    };
     let mut station = GroundStation::new(args.station_config()?)?;
     let mut links = Links::open(&args, station.config().drones())?;
     let c = station.config();
@@ -167,7 +223,12 @@ struct Links {
 
 impl Links {
     fn open(args: &MissionArgs, drone_ids: &[u8]) -> Result<Self> {
-        let key = read_key(args.key.as_ref())?;
+        let shared_key = read_key(args.key.as_ref())?;
+        if shared_key.is_none() && args.key_dir.is_none() && !args.insecure {
+            bail!(
+                "no uplink keys: pass --key-dir DIR (make one with skyherd-ground keygen), or --insecure for a bench test"
+            );
+        }
         let fleet_key = read_key(args.fleet_key.as_ref())?;
         let mut fleet = GroundLink::open(&args.fleet, link_config(&fleet_key, 0))
             .with_context(|| format!("opening the fleet link {}", args.fleet))?;
@@ -176,6 +237,13 @@ impl Links {
         }
         let mut uplinks = Vec::new();
         for (i, (id, address)) in args.drone_addresses()?.iter().enumerate() {
+            let key = match &args.key_dir {
+                Some(dir) => Some(
+                    SigningKey::from_file(&dir.join(format!("drone-{id}.key")))
+                        .with_context(|| format!("the uplink key of drone {id}"))?,
+                ),
+                None => shared_key.clone(),
+            };
             let link = GroundLink::open(address, link_config(&key, i as u8 + 1))
                 .with_context(|| format!("opening the uplink {address} of drone {id}"))?;
             uplinks.push((*id, link));
