@@ -150,6 +150,8 @@ pub struct MockAutopilot {
     companion_heartbeat_at: Option<f64>,
     stream_start: Option<f64>,
     failsafe_events: u64,
+    /// When (s) the last landing began (`MAV_CMD_NAV_LAND` accepted).
+    landing_since: Option<f64>,
     /// When (s) a landing ended in touchdown and the vehicle disarmed itself.
     touchdown_at: Option<f64>,
     battery_pct: f64,
@@ -186,6 +188,7 @@ impl MockAutopilot {
             companion_heartbeat_at: None,
             stream_start: None,
             failsafe_events: 0,
+            landing_since: None,
             touchdown_at: None,
             battery_pct: 100.0,
             last_tick: None,
@@ -239,6 +242,10 @@ impl MockAutopilot {
     /// Armed and in the LAND mode: descending under its own control.
     pub fn landing(&self) -> bool {
         self.armed && self.mode == self.config.flavour.land_mode()
+    }
+    /// When (s) the last landing began: the first accepted `MAV_CMD_NAV_LAND` of it.
+    pub fn landing_since(&self) -> Option<f64> {
+        self.landing_since
     }
     /// When (s) the last landing touched down (the vehicle disarmed itself then).
     pub fn touchdown_at(&self) -> Option<f64> {
@@ -345,6 +352,10 @@ impl MockAutopilot {
             MavCmd::MAV_CMD_DO_SET_MODE => self.on_set_mode(c, now),
             // Land where it is; a vehicle on the ground (disarmed) has nothing to land.
             MavCmd::MAV_CMD_NAV_LAND if self.armed => {
+                if !self.landing() {
+                    self.landing_since = Some(now);
+                    self.touchdown_at = None;
+                }
                 self.mode = self.config.flavour.land_mode();
                 MavResult::MAV_RESULT_ACCEPTED
             }
@@ -706,6 +717,7 @@ mod tests {
             }
         }
         let touchdown = ap.touchdown_at().expect("touched down");
+        assert_eq!(ap.landing_since(), Some(start));
         // 2 m at 0.7 m/s: 2.86 s, noticed on the next 0.1 s tick.
         assert!(
             (touchdown - start - 2.0 / LAND_SPEED).abs() <= 0.15,
