@@ -393,7 +393,7 @@ fn fly(sitl: &mut SitlWorld, targets: usize, ground: &mut Guard) -> Result<(Vec<
                 ));
             } else if report.ending.is_none() {
                 say(format!(
-                    "t={:6.1}s the ground station exited ({status}) before the mission ended; waiting for the drones to land",
+                    "the ground station exited ({status}) at t={:.1}s, before the mission ended; waiting for the drones to land",
                     report.time_s
                 ));
                 sitl.ground_exited(status.to_string());
