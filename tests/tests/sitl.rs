@@ -37,6 +37,8 @@ struct Run {
     result: Value,
     out: PathBuf,
     stderr: String,
+    /// The exit status: 0 success, 2 a failed mission.
+    code: Option<i32>,
 }
 
 /// One mission at a time: each runs several processes in lockstep, and two at once on a 2-core
@@ -79,6 +81,7 @@ fn fly(label: &str, args: &[&str]) -> Run {
         result,
         out,
         stderr,
+        code: output.status.code(),
     }
 }
 
@@ -341,6 +344,116 @@ fn a_lost_drone_is_noticed_and_the_other_goes_on() {
         "one drone lost at t=4 s: ending {}, success {}",
         r["ending"], r["success"]
     );
+}
+
+/// A `kill -9` of the ground station mid-mission (`--kill-ground-at`: a real SIGKILL of the
+/// real process): the daemons hold for the stale uplink, land on their own after
+/// `--land-after-s` of it (1 s uplink timeout + 10 s on seed 0: landing at 22.9 s, touchdown
+/// 0.8 s later from about half a metre, killed at 12 s), the autopilots disarm on touchdown,
+/// and the mission is reported failed once every drone is down, not at its time limit. The
+/// ground's CSV is readable, whole lines, up to the last second before the kill.
+#[test]
+fn a_killed_ground_fails_the_mission_and_the_drones_land_on_their_own() {
+    const KILL_AT: f64 = 12.0;
+    const LAND_AFTER: f64 = 10.0;
+    /// The daemon's uplink timeout: staleness starts this long after the last snapshot.
+    const UPLINK_TIMEOUT: f64 = 1.0;
+    /// The mock autopilot's descent rate (PX4's MPC_LAND_SPEED).
+    const LAND_SPEED: f64 = 0.7;
+    let run = fly(
+        "ground-killed",
+        &[
+            "--scenario",
+            "indoor",
+            "--seed",
+            "0",
+            "--kill-ground-at",
+            "12",
+            "--land-after-s",
+            "10",
+        ],
+    );
+    let r = &run.result;
+    assert_eq!(run.code, Some(2), "a failed mission: {r}\n{}", run.stderr);
+    assert_eq!(r["success"], false, "{r}");
+    assert_eq!(r["ending"], "ground_exited", "{r}");
+    assert!(
+        run.stderr
+            .contains("sitl: the ground station exited (signal: 9"),
+        "{}",
+        run.stderr
+    );
+    assert!(
+        r["ground_exit"].as_str().unwrap_or("").contains("SIGKILL"),
+        "{r}"
+    );
+    let flight_start = r["flight_start_s"].as_f64().expect("the drones flew");
+    assert!(flight_start < KILL_AT, "killed before take-off: {r}");
+    let exit = r["ground_exit_s"].as_f64().expect("the exit was noticed");
+    // (Simulated time is a sum of 0.1 s ticks: 12 s may read 11.999999999999975.)
+    assert!(
+        (KILL_AT - 1e-6..=KILL_AT + 0.5).contains(&exit),
+        "noticed at {exit} s"
+    );
+
+    // The ground's CSV: whole lines, the last one parseable, up to within a second of the kill.
+    let csv = std::fs::read_to_string(run.out.join("ground.csv")).expect("ground.csv");
+    assert!(csv.ends_with('\n'), "a cut line at the end: {csv:?}");
+    let lines: Vec<&str> = csv.lines().collect();
+    assert!(lines.len() >= 2, "no row: {csv:?}");
+    let header: Vec<&str> = lines[0].split(',').collect();
+    let last: Vec<&str> = lines[lines.len() - 1].split(',').collect();
+    assert_eq!(last.len(), header.len(), "last line {last:?}");
+    let column = |name: &str| {
+        let i = header.iter().position(|h| *h == name).expect(name);
+        last[i]
+            .parse::<f64>()
+            .unwrap_or_else(|e| panic!("{name} = {:?}: {e}", last[i]))
+    };
+    let last_row_s = column("time_s");
+    assert!(
+        (KILL_AT - 1.2..=KILL_AT).contains(&last_row_s),
+        "the CSV ends at {last_row_s} s, the kill was at {KILL_AT} s"
+    );
+    let highest = (1..=2)
+        .map(|d| column(&format!("d{d}_z")))
+        .fold(0.0_f64, f64::max);
+
+    // Every drone landed on its own, not before land_after, within land_after + the descent.
+    assert_eq!(r["drones_landed"], 2, "{r}");
+    let mut last_touchdown = 0.0_f64;
+    for d in 0..2 {
+        let start = r["landing_start_s"][d].as_f64().expect("a landing began");
+        let touchdown = r["touchdown_s"][d].as_f64().expect("touched down");
+        let descent = touchdown - start;
+        eprintln!(
+            "drone {}: ground killed at {KILL_AT} s, landing at {start:.1} s ({:.1} s later), touchdown at {touchdown:.1} s after a {descent:.1} s descent",
+            d + 1,
+            start - KILL_AT
+        );
+        assert!(
+            start - KILL_AT >= LAND_AFTER,
+            "landed {} s after the kill",
+            start - KILL_AT
+        );
+        assert!(
+            start - KILL_AT <= UPLINK_TIMEOUT + LAND_AFTER + 0.5,
+            "landing began {} s after the kill",
+            start - KILL_AT
+        );
+        // From at most the highest altitude the CSV last saw (they hold their height).
+        assert!(
+            descent > 0.0 && descent <= highest / LAND_SPEED + 0.5,
+            "a {descent} s descent from at most {highest} m"
+        );
+        last_touchdown = last_touchdown.max(touchdown);
+        let log = daemon_log(&run, d + 1);
+        assert!(log.contains("landing: ground silent for"), "{log}");
+        assert!(log.contains("MAV_CMD_NAV_LAND"), "{log}");
+    }
+    // The mission ended once they were down, long before its time limit.
+    let end = r["sim_time_s"].as_f64().expect("simulated time");
+    assert!(end - last_touchdown <= 0.2, "ran on to {end} s");
 }
 
 #[test]

@@ -60,6 +60,18 @@ pub fn set_mode(target_system: u8, target_component: u8, mode: FlightMode) -> Ma
     )
 }
 
+/// MAV_CMD_NAV_LAND as a COMMAND_LONG: land where the vehicle is. Param 1 (abort altitude)
+/// and 2 (precision landing) 0: the autopilot's defaults; 4-7 NaN: current heading, here (PX4
+/// and ArduPilot switch to their LAND mode and ignore a position they are not given).
+pub fn land(target_system: u8, target_component: u8) -> MavMessage {
+    command_long(
+        target_system,
+        target_component,
+        MavCmd::MAV_CMD_NAV_LAND,
+        [0.0, 0.0, 0.0, f32::NAN, f32::NAN, f32::NAN, f32::NAN],
+    )
+}
+
 /// A velocity-only setpoint in MAV_FRAME_LOCAL_NED (m/s, north-east-down).
 pub fn velocity_setpoint_ned(
     target_system: u8,
@@ -207,6 +219,18 @@ mod tests {
             FlightMode::from_heartbeat(MavAutopilot::MAV_AUTOPILOT_PX4, 6 << 16),
             FlightMode::PX4_OFFBOARD
         );
+    }
+
+    #[test]
+    fn land_is_a_command_long_nav_land_for_the_autopilot() {
+        let MavMessage::COMMAND_LONG(c) = land(3, 1) else {
+            unreachable!()
+        };
+        assert_eq!(
+            (c.command, c.target_system, c.target_component),
+            (MavCmd::MAV_CMD_NAV_LAND, 3, 1)
+        );
+        assert!(c.param5.is_nan() && c.param6.is_nan(), "here, not at 0, 0");
     }
 
     #[test]

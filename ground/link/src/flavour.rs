@@ -12,10 +12,10 @@ pub enum FlightMode {
     Px4 {
         /// Main mode (6 = OFFBOARD, 4 = AUTO).
         main: u8,
-        /// Sub mode (AUTO: 3 = LOITER, i.e. hold).
+        /// Sub mode (AUTO: 3 = LOITER, i.e. hold; 6 = LAND).
         sub: u8,
     },
-    /// ArduPilot Copter: `custom_mode` is the mode number (4 = GUIDED, 5 = LOITER).
+    /// ArduPilot Copter: `custom_mode` is the mode number (4 = GUIDED, 5 = LOITER, 9 = LAND).
     ArduPilot(u32),
     /// Another autopilot: its raw `custom_mode`.
     Other(u32),
@@ -26,10 +26,14 @@ impl FlightMode {
     pub const PX4_OFFBOARD: Self = Self::Px4 { main: 6, sub: 0 };
     /// PX4 AUTO.LOITER: hold position.
     pub const PX4_HOLD: Self = Self::Px4 { main: 4, sub: 3 };
+    /// PX4 AUTO.LAND: descend where it is, disarm on touchdown (`MAV_CMD_NAV_LAND`).
+    pub const PX4_LAND: Self = Self::Px4 { main: 4, sub: 6 };
     /// ArduPilot GUIDED (external setpoints).
     pub const ARDUPILOT_GUIDED: Self = Self::ArduPilot(4);
     /// ArduPilot LOITER: hold position.
     pub const ARDUPILOT_LOITER: Self = Self::ArduPilot(5);
+    /// ArduPilot LAND: descend where it is, disarm on touchdown.
+    pub const ARDUPILOT_LAND: Self = Self::ArduPilot(9);
 
     /// The mode a heartbeat reports.
     pub fn from_heartbeat(autopilot: MavAutopilot, custom_mode: u32) -> Self {
@@ -95,6 +99,14 @@ impl Flavour {
         }
     }
 
+    /// The mode the autopilot lands in (`MAV_CMD_NAV_LAND`): PX4 AUTO.LAND, ArduPilot LAND.
+    pub fn land_mode(self) -> FlightMode {
+        match self {
+            Self::Px4 => FlightMode::PX4_LAND,
+            Self::ArduPilot => FlightMode::ARDUPILOT_LAND,
+        }
+    }
+
     /// The custom main mode to request with `MAV_CMD_DO_SET_MODE` (param 2) for
     /// [`Flavour::external_mode`].
     pub fn control_mode(self) -> u8 {
@@ -143,5 +155,14 @@ mod tests {
         // A PX4 sub mode does not change the main mode.
         assert!(Flavour::Px4.is_control_mode((6 << 16) | (1 << 24)));
         assert!(!Flavour::ArduPilot.is_control_mode(6 << 16));
+        // Landing is not the control mode: a daemon that asked for it stops commanding.
+        assert_eq!(
+            Flavour::Px4.land_mode().custom_mode(),
+            (4 << 16) | (6 << 24)
+        );
+        assert_eq!(Flavour::ArduPilot.land_mode().custom_mode(), 9);
+        for flavour in [Flavour::Px4, Flavour::ArduPilot] {
+            assert!(!flavour.is_control_mode(flavour.land_mode().custom_mode()));
+        }
     }
 }

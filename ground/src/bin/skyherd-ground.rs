@@ -269,6 +269,7 @@ impl Links {
         let mut now = 0.0;
         let mut last_scan_wall = Instant::now();
         let mut last_flush = Instant::now();
+        let mut last_flush_at = f64::NEG_INFINITY;
         loop {
             let mut scan = None;
             for frame in self.fleet.poll(now, Duration::from_millis(5))? {
@@ -312,14 +313,16 @@ impl Links {
             if let Some(w) = &mut self.csv {
                 writeln!(w, "{}", reply.row.csv())?;
             }
-            // At least once a second, so that a killed ground leaves its CSV and .tlog readable
-            // up to then.
-            if last_flush.elapsed() >= Duration::from_secs(1) {
+            // At least once a second, wall or mission time (a simulator runs many times faster
+            // than real time), so that a killed ground leaves its CSV and .tlog readable, in
+            // whole lines, up to the last second before it died.
+            if last_flush.elapsed() >= Duration::from_secs(1) || now - last_flush_at >= 1.0 {
                 if let Some(w) = &mut self.csv {
                     w.flush()?;
                 }
                 self.fleet.flush_log()?;
                 last_flush = Instant::now();
+                last_flush_at = now;
             }
             if reply.finished {
                 return Ok(false);

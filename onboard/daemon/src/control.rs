@@ -20,6 +20,17 @@
 //! Holds with a fresh own position still pass through the safety rules, so a drone outside the
 //! geofence or below the altitude band is steered back in rather than frozen there.
 //!
+//! # When the ground dies
+//! A stale uplink is a hold, because the ground usually comes back (a radio fade, a restart).
+//! A ground that stays silent while the drone flies (killed, crashed, out of range for good)
+//! would leave it hovering until its battery runs out, so after
+//! [`CoreConfig::land_after`] of continuous staleness in flight the core lands instead
+//! ([`Status::Landing`]): it asks the autopilot to land where it is
+//! ([`AutopilotCommand::Land`], `MAV_CMD_NAV_LAND`), repeated until the autopilot reports it
+//! has left the control mode or disarmed, and sends no more setpoints (in its LAND mode the
+//! autopilot flies the descent and disarms on touchdown). A landing is not undone by the uplink
+//! coming back, nor by an abort or complete: only a new start command flies again.
+//!
 //! Uplink bytes arrive as TUNNEL payloads ([`DaemonCore::on_tunnel_payload`]): the
 //! [`wire`](skyherd_onboard::wire) reassembler turns chunks into [`Uplink`] messages; bad chunks are
 //! counted and dropped.
@@ -110,6 +121,9 @@ pub struct CoreConfig {
     pub stream_before_mode: Duration,
     /// Arm and mode requests are repeated this often until the autopilot reports them done.
     pub command_retry: Duration,
+    /// Land after the uplink has been stale (older than [`uplink_timeout`](Self::uplink_timeout))
+    /// continuously for this long while flying; `None`: hold for as long as it takes.
+    pub land_after: Option<Duration>,
     /// Keep apart from the other drones of the snapshot (`skyherd_onboard::separation`), before
     /// the safety rules; `None`: off, the actor's request goes to the rules as it is.
     pub separation: Option<SeparationConfig>,
@@ -117,7 +131,8 @@ pub struct CoreConfig {
 
 impl CoreConfig {
     /// Defaults for a drone: 5 m/s, uplink stale after 1 s (the ground sends at >= 5 Hz),
-    /// autopilot lost after 1.5 s, 1.2 s of stream before the mode switch, retries every 1 s.
+    /// autopilot lost after 1.5 s, 1.2 s of stream before the mode switch, retries every 1 s,
+    /// landing after 10 s of stale uplink (11 s after the last snapshot).
     pub fn new(system_id: u8, herder_index: usize, flavour: Flavour) -> Self {
         CoreConfig {
             system_id,
@@ -128,6 +143,7 @@ impl CoreConfig {
             autopilot_timeout: Duration::from_millis(1500),
             stream_before_mode: Duration::from_millis(1200),
             command_retry: Duration::from_millis(1000),
+            land_after: Some(Duration::from_secs(10)),
             separation: None,
         }
     }
@@ -158,6 +174,8 @@ pub enum AutopilotCommand {
         /// PX4 main mode or ArduPilot mode number.
         custom_main_mode: u8,
     },
+    /// `MAV_CMD_NAV_LAND`: land where you are (the autopilot's LAND mode, disarm on touchdown).
+    Land,
 }
 
 /// A velocity setpoint for `SET_POSITION_TARGET_LOCAL_NED` (type_mask 0x0DC7).
@@ -233,6 +251,27 @@ impl fmt::Display for HoldReason {
     }
 }
 
+/// Why the core gave up on the mission and landed.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum LandReason {
+    /// The uplink stayed stale for [`CoreConfig::land_after`] in flight: no snapshot for
+    /// `silent_ms` when the landing began.
+    GroundSilent {
+        /// Age of the newest snapshot when the core decided to land, ms.
+        silent_ms: u64,
+    },
+}
+
+impl fmt::Display for LandReason {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            LandReason::GroundSilent { silent_ms } => {
+                write!(f, "ground silent for {:.1} s", *silent_ms as f64 / 1000.0)
+            }
+        }
+    }
+}
+
 /// What the core is doing, as of the last tick.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Status {
@@ -245,6 +284,8 @@ pub enum Status {
     Flying(Reasons),
     /// Sending zero-velocity setpoints.
     Holding(HoldReason),
+    /// Landing: no setpoints, `MAV_CMD_NAV_LAND` until the autopilot has taken over.
+    Landing(LandReason),
 }
 
 impl Status {
@@ -258,6 +299,11 @@ impl Status {
     pub fn is_hold(&self) -> bool {
         matches!(self, Status::Holding(_))
     }
+
+    /// Whether an operator should be warned: a hold, or a landing the ground did not ask for.
+    pub fn is_warning(&self) -> bool {
+        matches!(self, Status::Holding(_) | Status::Landing(_))
+    }
 }
 
 impl fmt::Display for Status {
@@ -268,6 +314,7 @@ impl fmt::Display for Status {
             Status::Flying(reasons) if reasons.is_empty() => f.write_str("flying"),
             Status::Flying(reasons) => write!(f, "flying ({reasons})"),
             Status::Holding(r) => write!(f, "holding: {r}"),
+            Status::Landing(r) => write!(f, "landing: {r}"),
         }
     }
 }
@@ -306,6 +353,8 @@ pub struct CoreCounters {
     pub ground_restarts: u64,
     /// Autopilot commands issued.
     pub commands_sent: u64,
+    /// Landings begun because the ground went silent.
+    pub landings: u64,
 }
 
 /// How long after an accepted arm or mode command a heartbeat contradicting it is taken for
@@ -342,12 +391,23 @@ struct ActiveMission {
     link_was_lost: bool,
 }
 
+/// A landing in progress; see the module docs ("When the ground dies").
+#[derive(Clone, Copy, Debug)]
+struct Landing {
+    reason: LandReason,
+    last_request: Option<Millis>,
+    /// The autopilot acknowledged `MAV_CMD_NAV_LAND` with ACCEPTED.
+    accepted: bool,
+}
+
 #[derive(Clone, Copy, Debug)]
 enum Mission {
     Idle,
     Active(ActiveMission),
     /// Ended by the ground (aborted or complete): hold with this reason until a new start.
     Ended(HoldReason),
+    /// Given up without the ground: landing, until a new start.
+    Landing(Landing),
 }
 
 /// The daemon's decision core. See the [module docs](self).
@@ -467,6 +527,11 @@ impl<P: OnboardPolicy> DaemonCore<P> {
                 self.autopilot.mode_accepted_at = Some(now);
             }
             AutopilotCommand::SetMode { .. } => {}
+            AutopilotCommand::Land => {
+                if let Mission::Landing(landing) = &mut self.mission {
+                    landing.accepted = true;
+                }
+            }
         }
     }
 
@@ -592,6 +657,13 @@ impl<P: OnboardPolicy> DaemonCore<P> {
                     link_was_lost: false,
                 });
             }
+            // A landing is not called off by the ground (see the module docs); it was
+            // going to end the mission anyway.
+            MissionAction::Abort | MissionAction::Complete
+                if matches!(self.mission, Mission::Landing(_)) =>
+            {
+                info!("mission {:?} while landing: landing on", command.action);
+            }
             MissionAction::Abort => {
                 info!("mission abort: holding");
                 self.mission = Mission::Ended(HoldReason::Aborted);
@@ -614,9 +686,10 @@ impl<P: OnboardPolicy> DaemonCore<P> {
             self.counters.hold_ticks += 1;
         }
         if !same_kind(&decision.status, &self.last_status) {
-            match decision.status {
-                Status::Holding(_) => warn!("{}", decision.status),
-                _ => info!("{}", decision.status),
+            if decision.status.is_warning() {
+                warn!("{}", decision.status);
+            } else {
+                info!("{}", decision.status);
             }
         }
         self.last_status = decision.status;
@@ -633,6 +706,7 @@ impl<P: OnboardPolicy> DaemonCore<P> {
             .autopilot
             .last_heard
             .is_some_and(|t| now.since(t) <= self.config.autopilot_timeout);
+        let given_up = self.ground_given_up(now);
         let mission = match &mut self.mission {
             Mission::Idle => {
                 return ControlOutput {
@@ -642,6 +716,24 @@ impl<P: OnboardPolicy> DaemonCore<P> {
                 };
             }
             Mission::Ended(reason) => return hold(*reason),
+            Mission::Landing(landing) => {
+                // Until the autopilot has taken over (left the control mode, or disarmed on
+                // the ground), ask again every retry period; after that, it flies.
+                let retry = self.config.command_retry;
+                let due = link_ok
+                    && !landing.accepted
+                    && self.autopilot.armed
+                    && self.autopilot.in_control_mode
+                    && landing.last_request.is_none_or(|t| now.since(t) >= retry);
+                if due {
+                    landing.last_request = Some(now);
+                }
+                return ControlOutput {
+                    setpoint: None,
+                    command: due.then_some(AutopilotCommand::Land),
+                    status: Status::Landing(landing.reason),
+                };
+            }
             Mission::Active(mission) => mission,
         };
         if !link_ok {
@@ -693,6 +785,16 @@ impl<P: OnboardPolicy> DaemonCore<P> {
             };
         }
         mission.engaged = true;
+        if let Some(reason) = given_up {
+            warn!("uplink stale for longer than the land-after time in flight: landing");
+            self.counters.landings += 1;
+            self.mission = Mission::Landing(Landing {
+                reason,
+                last_request: None,
+                accepted: false,
+            });
+            return self.decide(now);
+        }
         let mission = *mission;
         let (setpoint, status) = self.fly(now, &mission);
         ControlOutput {
@@ -700,6 +802,19 @@ impl<P: OnboardPolicy> DaemonCore<P> {
             command: None,
             status,
         }
+    }
+
+    /// In flight: whether the uplink has been stale for longer than
+    /// [`CoreConfig::land_after`], and how long the ground has been silent. (Without any
+    /// snapshot there is no flight to give up: the drone never flew the mission.)
+    fn ground_given_up(&self, now: Millis) -> Option<LandReason> {
+        let land_after = self.config.land_after?;
+        let (_, received) = self.world.as_ref()?;
+        let silent = now.since(*received);
+        let stale_for = silent.checked_sub(self.config.uplink_timeout)?;
+        (stale_for > land_after).then(|| LandReason::GroundSilent {
+            silent_ms: u64::try_from(silent.as_millis()).unwrap_or(u64::MAX),
+        })
     }
 
     /// The actor's velocity through the safety rules, or a hold and why.
@@ -898,7 +1013,12 @@ mod tests {
 
     /// A PX4 core driven through start to flying; returns it and the time reached (ms).
     fn flying() -> (DaemonCore<TowardsGoal>, u64) {
-        let mut c = core(Flavour::Px4);
+        flying_with(CoreConfig::new(ID, 1, Flavour::Px4))
+    }
+
+    /// The same with `config`.
+    fn flying_with(config: CoreConfig) -> (DaemonCore<TowardsGoal>, u64) {
+        let mut c = DaemonCore::new(config, TowardsGoal);
         autopilot(&mut c, 0, true, PX4_OFFBOARD);
         c.on_uplink(Millis(0), start());
         c.on_uplink(Millis(0), snapshot(1));
@@ -1077,6 +1197,140 @@ mod tests {
         c.on_uplink(Millis(1100), snapshot(2));
         autopilot(&mut c, 1100, true, PX4_OFFBOARD);
         assert_eq!(c.tick(Millis(1100)).status, Status::Flying(Reasons::NONE));
+    }
+
+    /// PX4 AUTO.LAND as a heartbeat reports it (main mode 4, sub mode 6).
+    const PX4_LAND: u32 = (4 << 16) | (6 << 24);
+
+    /// Ticks every 100 ms from `from` to `to` (inclusive) with the autopilot armed in
+    /// OFFBOARD and no uplink; every status seen.
+    fn silent_ticks(c: &mut DaemonCore<TowardsGoal>, from: u64, to: u64) -> Vec<ControlOutput> {
+        (from / 100..=to / 100)
+            .map(|k| {
+                autopilot(c, k * 100, true, PX4_OFFBOARD);
+                c.tick(Millis(k * 100))
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_stale_uplink_shorter_than_land_after_holds() {
+        let (mut c, _) = flying();
+        // Snapshot at 0, stale from 1 s; 10 s of staleness is not more than land_after.
+        for d in silent_ticks(&mut c, 1100, 11_000) {
+            assert!(
+                matches!(d.status, Status::Holding(HoldReason::UplinkStale { .. })),
+                "{:?}",
+                d.status
+            );
+            assert_eq!(d.command, None);
+            assert!(d.setpoint.is_some());
+        }
+        assert_eq!(c.counters().landings, 0);
+    }
+
+    #[test]
+    fn a_longer_silence_in_flight_lands_and_keeps_landing() {
+        let (mut c, _) = flying();
+        silent_ticks(&mut c, 100, 11_000);
+        autopilot(&mut c, 11_001, true, PX4_OFFBOARD);
+        let d = c.tick(Millis(11_001));
+        assert_eq!(
+            d.status,
+            Status::Landing(LandReason::GroundSilent { silent_ms: 11_001 })
+        );
+        assert_eq!(d.status.to_string(), "landing: ground silent for 11.0 s");
+        assert!(d.status.is_warning() && !d.status.is_hold());
+        assert_eq!(
+            (d.setpoint, d.command),
+            (None, Some(AutopilotCommand::Land))
+        );
+        assert_eq!(c.counters().landings, 1);
+        // The ground is back: a fresh snapshot does not undo the landing, nor does an abort.
+        c.on_uplink(Millis(11_100), snapshot(2));
+        c.on_uplink(Millis(11_100), command(2, MissionAction::Abort));
+        autopilot(&mut c, 11_100, true, PX4_OFFBOARD);
+        let d = c.tick(Millis(11_100));
+        assert!(matches!(d.status, Status::Landing(_)), "{:?}", d.status);
+        assert_eq!(
+            (d.setpoint, d.command),
+            (None, None),
+            "not before the retry"
+        );
+        // Not yet out of OFFBOARD after the retry period: asked again.
+        autopilot(&mut c, 12_001, true, PX4_OFFBOARD);
+        c.on_uplink(Millis(12_001), snapshot(3));
+        let d = c.tick(Millis(12_001));
+        assert_eq!(
+            (d.setpoint, d.command),
+            (None, Some(AutopilotCommand::Land))
+        );
+        // In AUTO.LAND, then disarmed on the ground: nothing more to send, still landing.
+        for (t, armed, mode) in [(13_100, true, PX4_LAND), (20_000, false, PX4_LAND)] {
+            autopilot(&mut c, t, armed, mode);
+            c.on_uplink(Millis(t), snapshot(t as u32));
+            let d = c.tick(Millis(t));
+            assert!(matches!(d.status, Status::Landing(_)), "{:?}", d.status);
+            assert_eq!((d.setpoint, d.command), (None, None));
+        }
+        // A new start from the ground flies again.
+        c.on_uplink(Millis(20_100), command(3, MissionAction::Start));
+        autopilot(&mut c, 20_100, false, PX4_LAND);
+        assert_eq!(c.tick(Millis(20_100)).command, Some(AutopilotCommand::Arm));
+    }
+
+    #[test]
+    fn an_accepted_land_is_not_repeated() {
+        let (mut c, _) = flying();
+        silent_ticks(&mut c, 100, 11_000);
+        autopilot(&mut c, 11_100, true, PX4_OFFBOARD);
+        assert_eq!(c.tick(Millis(11_100)).command, Some(AutopilotCommand::Land));
+        c.on_command_accepted(Millis(11_200), AutopilotCommand::Land);
+        // Its heartbeat still says OFFBOARD, but it said yes.
+        autopilot(&mut c, 12_200, true, PX4_OFFBOARD);
+        assert_eq!(c.tick(Millis(12_200)).command, None);
+    }
+
+    #[test]
+    fn without_land_after_a_silent_ground_is_held_for_ever() {
+        let mut config = CoreConfig::new(ID, 1, Flavour::Px4);
+        config.land_after = None;
+        let (mut c, _) = flying_with(config);
+        for d in silent_ticks(&mut c, 1100, 120_000) {
+            assert!(d.status.is_hold(), "{:?}", d.status);
+            assert_eq!(d.command, None);
+        }
+    }
+
+    #[test]
+    fn staleness_before_take_off_or_before_the_mission_does_not_land() {
+        // No mission: the snapshot ages, nothing happens.
+        let mut c = core(Flavour::Px4);
+        c.on_uplink(Millis(0), snapshot(1));
+        for d in silent_ticks(&mut c, 0, 30_000) {
+            assert_eq!(d.status, Status::Idle);
+        }
+        // Started, but the autopilot never arms: still preparing, asking to arm.
+        let mut c = core(Flavour::Px4);
+        c.on_uplink(Millis(0), start());
+        c.on_uplink(Millis(0), snapshot(1));
+        for k in 0..=300 {
+            autopilot(&mut c, k * 100, false, 0);
+            let d = c.tick(Millis(k * 100));
+            assert_eq!(d.status, Status::Preparing(Preparing::Arming));
+            assert_ne!(d.command, Some(AutopilotCommand::Land));
+        }
+        // Started and armed, but never let into OFFBOARD: not in flight either.
+        let mut c = core(Flavour::Px4);
+        c.on_uplink(Millis(0), start());
+        c.on_uplink(Millis(0), snapshot(1));
+        for k in 0..=300 {
+            autopilot(&mut c, k * 100, true, 0);
+            let d = c.tick(Millis(k * 100));
+            assert!(matches!(d.status, Status::Preparing(_)), "{:?}", d.status);
+            assert_ne!(d.command, Some(AutopilotCommand::Land));
+        }
+        assert_eq!(c.counters().landings, 0);
     }
 
     #[test]

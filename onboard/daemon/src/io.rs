@@ -43,7 +43,7 @@ use crate::control::{AutopilotCommand, DaemonCore, Millis, OnboardPolicy, Setpoi
 use skyherd_link::AUTOPILOT_COMPONENT_ID;
 /// Our MAVLink component id: `MAV_COMP_ID_ONBOARD_COMPUTER`.
 pub use skyherd_link::DAEMON_COMPONENT_ID as COMPONENT_ID;
-use skyherd_link::command::{command_long, velocity_setpoint_ned};
+use skyherd_link::command::{command_long, land, velocity_setpoint_ned};
 use skyherd_link::replay::{ReplayGuard, ReplayStateError, SignatureError, SigningTime};
 use skyherd_link::signing::{SigningKey, signing_data};
 /// HEARTBEAT period, ms of the daemon's clock.
@@ -932,9 +932,10 @@ impl<P: OnboardPolicy> Daemon<P> {
                 match ack.result {
                     MavResult::MAV_RESULT_ACCEPTED => {
                         info!("autopilot accepted {:?}", ack.command);
-                        // We only ever arm and switch to our control mode.
+                        // We only ever arm, switch to our control mode and land.
                         let command = match ack.command {
                             MavCmd::MAV_CMD_COMPONENT_ARM_DISARM => Some(AutopilotCommand::Arm),
+                            MavCmd::MAV_CMD_NAV_LAND => Some(AutopilotCommand::Land),
                             MavCmd::MAV_CMD_DO_SET_MODE => Some(AutopilotCommand::SetMode {
                                 custom_main_mode: self.core.config().flavour.control_mode(),
                             }),
@@ -1041,7 +1042,14 @@ impl<P: OnboardPolicy> Daemon<P> {
     }
 
     fn send_command(&mut self, command: AutopilotCommand) {
+        let system_id = self.core.config().system_id;
         let (command_id, param1, param2) = match command {
+            AutopilotCommand::Land => {
+                warn!("sending MAV_CMD_NAV_LAND");
+                self.send_autopilot(&land(system_id, AUTOPILOT_COMPONENT_ID));
+                self.counters.autopilot.commands_sent += 1;
+                return;
+            }
             AutopilotCommand::Arm => (MavCmd::MAV_CMD_COMPONENT_ARM_DISARM, 1.0, 0.0),
             AutopilotCommand::SetMode { custom_main_mode } => (
                 MavCmd::MAV_CMD_DO_SET_MODE,
@@ -1052,7 +1060,7 @@ impl<P: OnboardPolicy> Daemon<P> {
         };
         info!("sending {command_id:?} ({param1}, {param2})");
         let message = command_long(
-            self.core.config().system_id,
+            system_id,
             AUTOPILOT_COMPONENT_ID,
             command_id,
             [param1, param2, 0.0, 0.0, 0.0, 0.0, 0.0],
@@ -1087,7 +1095,7 @@ impl<P: OnboardPolicy> Daemon<P> {
     }
 
     fn send_status_text(&mut self, status: Status) {
-        let severity = if status.is_hold() {
+        let severity = if status.is_warning() {
             MavSeverity::MAV_SEVERITY_WARNING
         } else {
             MavSeverity::MAV_SEVERITY_INFO

@@ -337,6 +337,7 @@ fn fly_mission<P: OnboardPolicy>(
             Status::Flying(_) => "flying".to_string(),
             Status::Holding(HoldReason::UplinkStale { .. }) => "hold(stale)".to_string(),
             Status::Holding(r) => format!("hold({r:?})").to_lowercase(),
+            Status::Landing(_) => "landing".to_string(),
         };
         if flow.last() != Some(&name) {
             flow.push(name);
@@ -401,6 +402,9 @@ fn fly_mission<P: OnboardPolicy>(
             Some(AutopilotCommand::Arm) => armed = true,
             Some(AutopilotCommand::SetMode { custom_main_mode }) => {
                 custom_mode = u32::from(custom_main_mode) << 16;
+            }
+            Some(AutopilotCommand::Land) => {
+                return Err(fail("mission", format!("landed at {now:?}")));
             }
             None => {}
         }

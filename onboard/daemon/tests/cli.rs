@@ -98,10 +98,15 @@ fn without_a_key_the_daemon_refuses_to_fly_unless_told_it_is_a_bench_test() {
         ("--rate-hz", "0"),
         ("--rate-hz", "nan"),
         ("--rate-hz", "1e9"),
+        ("--land-after-s", "nan"),
+        ("--land-after-s", "-1"),
+        ("--land-after-s", "inf"),
+        ("--land-after-s", "1e300"),
     ] {
         let arg = format!("{flag}={value}");
         let (ok, err) = run_with(&["--model", model, "--system-id", "1", "--insecure", &arg]);
         assert!(!ok, "{arg} accepted");
         assert!(err.contains(flag), "{arg}: {err}");
+        assert!(!err.contains("panicked"), "{arg}: {err}");
     }
 }

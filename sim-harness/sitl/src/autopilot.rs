@@ -10,6 +10,11 @@
 //!   the mode drops to AUTO.LOITER (hold) and the vehicle stops.
 //! * ArduPilot: GUIDED (4) is accepted at any time; a velocity setpoint older than 3 s is
 //!   dropped and the vehicle stops (still GUIDED).
+//! * Both: `MAV_CMD_NAV_LAND` (COMMAND_LONG) while armed switches to the LAND mode (PX4
+//!   AUTO.LAND, ArduPilot LAND): the vehicle descends where it is at [`LAND_SPEED`], ignores
+//!   velocity setpoints, and disarms itself on touchdown (height [`TOUCHDOWN_M`] or less above
+//!   the floor, NED z = 0, where the simulator's world stops a descent). Disarmed, it is
+//!   DENIED.
 //! * Setpoints must be SET_POSITION_TARGET_LOCAL_NED in MAV_FRAME_LOCAL_NED with type_mask
 //!   0x0DC7 (velocity only); anything else is rejected and counted by reason.
 
@@ -98,6 +103,12 @@ pub const PX4_MAX_STREAM_GAP: f64 = 0.5;
 pub const PX4_SETPOINT_LOSS_TIMEOUT: f64 = 1.0;
 /// ArduPilot GUIDED velocity command timeout (s).
 pub const ARDUPILOT_VELOCITY_TIMEOUT: f64 = 3.0;
+/// Descent rate in the LAND mode (m/s): PX4's `MPC_LAND_SPEED` default, used for both
+/// flavours (ArduCopter's `LAND_SPEED` is 0.5 m/s near the ground, 0.7 m/s would not change
+/// any conclusion a room-height landing draws).
+pub const LAND_SPEED: f64 = 0.7;
+/// Height above the floor (m) at which a landing vehicle counts as on the ground and disarms.
+pub const TOUCHDOWN_M: f64 = 0.01;
 
 /// Setpoints and commands refused, by reason.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
@@ -139,6 +150,10 @@ pub struct MockAutopilot {
     companion_heartbeat_at: Option<f64>,
     stream_start: Option<f64>,
     failsafe_events: u64,
+    /// When (s) the last landing began (`MAV_CMD_NAV_LAND` accepted).
+    landing_since: Option<f64>,
+    /// When (s) a landing ended in touchdown and the vehicle disarmed itself.
+    touchdown_at: Option<f64>,
     battery_pct: f64,
     last_tick: Option<f64>,
     next_status: f64,
@@ -173,6 +188,8 @@ impl MockAutopilot {
             companion_heartbeat_at: None,
             stream_start: None,
             failsafe_events: 0,
+            landing_since: None,
+            touchdown_at: None,
             battery_pct: 100.0,
             last_tick: None,
             next_status: now,
@@ -221,6 +238,18 @@ impl MockAutopilot {
     /// Refusals by reason.
     pub fn rejections(&self) -> &Rejections {
         &self.rejections
+    }
+    /// Armed and in the LAND mode: descending under its own control.
+    pub fn landing(&self) -> bool {
+        self.armed && self.mode == self.config.flavour.land_mode()
+    }
+    /// When (s) the last landing began: the first accepted `MAV_CMD_NAV_LAND` of it.
+    pub fn landing_since(&self) -> Option<f64> {
+        self.landing_since
+    }
+    /// When (s) the last landing touched down (the vehicle disarmed itself then).
+    pub fn touchdown_at(&self) -> Option<f64> {
+        self.touchdown_at
     }
 
     /// Overwrite the true state (the simulator's world owns the vehicle's motion when it is
@@ -321,6 +350,16 @@ impl MockAutopilot {
                 }
             }
             MavCmd::MAV_CMD_DO_SET_MODE => self.on_set_mode(c, now),
+            // Land where it is; a vehicle on the ground (disarmed) has nothing to land.
+            MavCmd::MAV_CMD_NAV_LAND if self.armed => {
+                if !self.landing() {
+                    self.landing_since = Some(now);
+                    self.touchdown_at = None;
+                }
+                self.mode = self.config.flavour.land_mode();
+                MavResult::MAV_RESULT_ACCEPTED
+            }
+            MavCmd::MAV_CMD_NAV_LAND => MavResult::MAV_RESULT_DENIED,
             _ => MavResult::MAV_RESULT_UNSUPPORTED,
         };
         if result != MavResult::MAV_RESULT_ACCEPTED {
@@ -396,10 +435,22 @@ impl MockAutopilot {
             self.mode = self.config.flavour.hold_mode();
             self.failsafe_events += 1;
         }
+        // Touchdown: the landing is over, the vehicle disarms itself (PX4's land detector).
+        if self.landing() && self.position_ned[2] >= -TOUCHDOWN_M {
+            self.armed = false;
+            self.touchdown_at = Some(now);
+        }
         let fly = self.armed
             && self.mode == self.config.flavour.external_mode()
             && since_setpoint <= ARDUPILOT_VELOCITY_TIMEOUT;
-        let command = if fly { self.setpoint } else { [0.0; 3] };
+        let command = if self.landing() {
+            // Straight down (NED z positive), whatever the setpoints say.
+            [0.0, 0.0, LAND_SPEED]
+        } else if fly {
+            self.setpoint
+        } else {
+            [0.0; 3]
+        };
         let dt = self.last_tick.map_or(0.0, |last| (now - last).max(0.0));
         // What the vehicle flies: the command at once, or where the motion model has got to.
         let flown = match (self.motion.as_mut(), self.config.dynamics) {
@@ -426,6 +477,10 @@ impl MockAutopilot {
         if dt > 0.0 {
             for (p, v) in self.position_ned.iter_mut().zip(flown) {
                 *p += v * dt;
+            }
+            if self.landing() {
+                // The floor (NED z = 0) stops a descent, as the simulator's world does.
+                self.position_ned[2] = self.position_ned[2].min(0.0);
             }
             if self.armed {
                 let speed = (flown[0].powi(2) + flown[1].powi(2) + flown[2].powi(2)).sqrt();
@@ -526,7 +581,7 @@ impl MockAutopilot {
 mod tests {
     use super::*;
     use mavlink::dialects::common::{MavFrame, PositionTargetTypemask};
-    use skyherd_link::command::{arm_disarm, set_mode, velocity_setpoint_ned};
+    use skyherd_link::command::{arm_disarm, land, set_mode, velocity_setpoint_ned};
 
     const H: MavHeader = MavHeader {
         system_id: 255,
@@ -608,6 +663,115 @@ mod tests {
         assert_eq!(ap.tick(2.9).velocity_ned, [0.0, 2.0, 0.0]);
         assert_eq!(ap.tick(3.1).velocity_ned, [0.0; 3]);
         assert_eq!(ap.mode(), FlightMode::ARDUPILOT_GUIDED);
+    }
+
+    /// A PX4 autopilot armed and flying OFFBOARD at `height` m (NED z = -height), at t = 2 s.
+    fn offboard_at(height: f64) -> (MockAutopilot, f64) {
+        let mut ap = MockAutopilot::new(AutopilotConfig::px4(1), [0.0, 0.0, -height], 0.0);
+        ap.handle(&H, &arm_disarm(1, 1, true), 0.0);
+        let hold = velocity_setpoint_ned(1, 1, 0, [0.0; 3]);
+        let mut t = 0.0;
+        while t < 1.25 {
+            ap.handle(&H, &hold, t);
+            ap.tick(t);
+            t += 0.1;
+        }
+        assert_eq!(
+            ack(&ap.handle(&H, &set_mode(1, 1, FlightMode::PX4_OFFBOARD), t)),
+            MavResult::MAV_RESULT_ACCEPTED
+        );
+        (ap, t)
+    }
+
+    fn heartbeat_mode(ap: &mut MockAutopilot, now: f64) -> Option<(u32, bool)> {
+        ap.restart_telemetry(now);
+        ap.telemetry(now).into_iter().find_map(|m| match m {
+            MavMessage::HEARTBEAT(hb) => Some((
+                hb.custom_mode,
+                hb.base_mode
+                    .contains(MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED),
+            )),
+            _ => None,
+        })
+    }
+
+    #[test]
+    fn land_when_armed_descends_at_the_land_speed_and_disarms_at_touchdown() {
+        let (mut ap, mut t) = offboard_at(2.0);
+        assert_eq!(
+            ack(&ap.handle(&H, &land(1, 1), t)),
+            MavResult::MAV_RESULT_ACCEPTED
+        );
+        assert_eq!(ap.mode(), FlightMode::PX4_LAND);
+        assert_eq!(
+            heartbeat_mode(&mut ap, t),
+            Some(((4 << 16) | (6 << 24), true)),
+            "AUTO.LAND, armed"
+        );
+        let start = t;
+        while ap.armed() && t < start + 10.0 {
+            t += 0.1;
+            let v = ap.tick(t).velocity_ned;
+            if ap.armed() {
+                assert_eq!(v, [0.0, 0.0, LAND_SPEED]);
+            }
+        }
+        let touchdown = ap.touchdown_at().expect("touched down");
+        assert_eq!(ap.landing_since(), Some(start));
+        // 2 m at 0.7 m/s: 2.86 s, noticed on the next 0.1 s tick.
+        assert!(
+            (touchdown - start - 2.0 / LAND_SPEED).abs() <= 0.15,
+            "touchdown {:.2} s after the command",
+            touchdown - start
+        );
+        assert!(!ap.armed());
+        assert_eq!(ap.position_ned()[2], 0.0, "stopped by the floor");
+        assert_eq!(ap.tick(t + 1.0).velocity_ned, [0.0; 3]);
+        assert_eq!(heartbeat_mode(&mut ap, t + 1.0).map(|m| m.1), Some(false));
+        // ArduPilot reports LAND as mode 9.
+        let mut ap = MockAutopilot::new(AutopilotConfig::ardupilot(2), [0.0, 0.0, -1.0], 0.0);
+        ap.handle(&H, &arm_disarm(2, 1, true), 0.0);
+        assert_eq!(
+            ack(&ap.handle(&H, &land(2, 1), 0.0)),
+            MavResult::MAV_RESULT_ACCEPTED
+        );
+        assert_eq!(heartbeat_mode(&mut ap, 0.0).map(|m| m.0), Some(9));
+    }
+
+    #[test]
+    fn land_is_denied_when_disarmed() {
+        let mut ap = MockAutopilot::new(AutopilotConfig::px4(1), [0.0, 0.0, -2.0], 0.0);
+        assert_eq!(
+            ack(&ap.handle(&H, &land(1, 1), 0.0)),
+            MavResult::MAV_RESULT_DENIED
+        );
+        assert_eq!(ap.mode(), FlightMode::PX4_HOLD);
+        assert_eq!(ap.rejections().commands_refused, 1);
+        assert_eq!(ap.touchdown_at(), None);
+    }
+
+    #[test]
+    fn setpoints_are_ignored_while_landing() {
+        let (mut ap, mut t) = offboard_at(3.0);
+        ap.handle(&H, &land(1, 1), t);
+        ap.tick(t);
+        let before = ap.position_ned()[2];
+        let up_and_away = velocity_setpoint_ned(1, 1, 0, [2.0, 1.0, -1.0]);
+        for _ in 0..10 {
+            ap.handle(&H, &up_and_away, t);
+            t += 0.1;
+            assert_eq!(ap.tick(t).velocity_ned, [0.0, 0.0, LAND_SPEED]);
+        }
+        let p = ap.position_ned();
+        assert_eq!((p[0], p[1]), (0.0, 0.0), "straight down");
+        assert!((p[2] - (before + LAND_SPEED)).abs() < 1e-9, "{p:?}");
+        assert_eq!(
+            ap.mode(),
+            FlightMode::PX4_LAND,
+            "no switch back, no failsafe"
+        );
+        assert_eq!(ap.failsafe_events(), 0);
+        assert!(ap.rejections().outside_external_mode >= 10);
     }
 
     #[test]

@@ -5,7 +5,8 @@
 //! clock here) and says what to do: record the state for the trajectory plot, print a
 //! progress line (at most one per wall second, so a mission at 250x real time prints a few
 //! lines, not hundreds), or stop (three simulated seconds after the episode ended, or when the
-//! drones never took off). [`MissionResult`] is `result.json`; [`MissionResult::table`] is
+//! drones never took off; after the ground station exited, once every drone has landed and
+//! disarmed, or [`LANDING_WAIT_S`] later). [`MissionResult`] is `result.json`; [`MissionResult::table`] is
 //! what a person reads at the end.
 //!
 //! ```
@@ -13,10 +14,10 @@
 //! use skyherd_sitl::mission::{Ending, TickReport};
 //!
 //! let mut watch = MissionWatch::new(2, 4);
-//! let tick = TickReport { time_s: 1.0, flying: 2, ending: None };
+//! let tick = TickReport { time_s: 1.0, flying: 2, armed: 2, ending: None };
 //! let step = watch.observe(&tick, 3, 0.0, true);
 //! assert!(step.record_state && step.progress.is_some() && step.stop.is_none());
-//! let end = TickReport { time_s: 30.0, flying: 2, ending: Some(Ending::Success) };
+//! let end = TickReport { time_s: 30.0, flying: 2, armed: 2, ending: Some(Ending::Success) };
 //! assert!(watch.observe(&end, 4, 0.5, true).progress.unwrap().contains("episode ended"));
 //! let later = TickReport { time_s: 33.0, ..end };
 //! assert_eq!(watch.observe(&later, 4, 0.6, true).stop, Some(Stop::Ended));
@@ -26,7 +27,7 @@ use std::fmt::Write as _;
 
 use serde::Serialize;
 
-use crate::mission::{Ending, TickReport};
+use crate::mission::{Ending, LANDING_WAIT_S, TickReport};
 
 /// Simulated seconds the loop runs on after the episode ended, so the ground can see the
 /// mission through and the drones hold.
@@ -64,6 +65,9 @@ pub struct MissionWatch {
     targets: usize,
     next_progress_wall_s: f64,
     ended_at: Option<f64>,
+    ending: Option<Ending>,
+    /// After the ground exited: every drone down (or the wait over) has been reported.
+    landing_reported: bool,
 }
 
 impl MissionWatch {
@@ -74,6 +78,8 @@ impl MissionWatch {
             targets,
             next_progress_wall_s: 0.0,
             ended_at: None,
+            ending: None,
+            landing_reported: false,
         }
     }
 
@@ -92,6 +98,7 @@ impl MissionWatch {
             && self.ended_at.is_none()
         {
             self.ended_at = Some(t);
+            self.ending = Some(ending);
             progress = Some(format!(
                 "t={t:6.1}s episode ended: {} ({in_goal}/{} targets in the goal)",
                 ending_text(ending),
@@ -104,7 +111,26 @@ impl MissionWatch {
                 tick.flying, self.drones, self.targets
             ));
         }
-        let stop = if self.ended_at.is_some_and(|e| t - e >= GRACE_S) {
+        let stop = if let (Some(Ending::GroundExited), Some(e)) = (self.ending, self.ended_at) {
+            // Without a ground the drones land on their own: watch them down.
+            let down = tick.armed == 0;
+            let over = t - e >= LANDING_WAIT_S;
+            if (down || over) && !self.landing_reported {
+                self.landing_reported = true;
+                progress = Some(if down {
+                    format!(
+                        "t={t:6.1}s every drone has landed and disarmed, {:.1} s after the ground exited",
+                        t - e
+                    )
+                } else {
+                    format!(
+                        "t={t:6.1}s {}/{} drones still armed {LANDING_WAIT_S} s after the ground exited",
+                        tick.armed, self.drones
+                    )
+                });
+            }
+            (down || over).then_some(Stop::Ended)
+        } else if self.ended_at.is_some_and(|e| t - e >= GRACE_S) {
             Some(Stop::Ended)
         } else if !took_off && wall_s > TAKEOFF_LIMIT_S {
             Some(Stop::NoTakeoff)
@@ -125,6 +151,7 @@ pub(crate) fn ending_text(ending: Ending) -> &'static str {
         Ending::Success => "every target in the goal",
         Ending::LeftArea => "something left the arena",
         Ending::TimeLimit => "time limit",
+        Ending::GroundExited => "the ground station exited",
     }
 }
 
@@ -169,6 +196,17 @@ pub struct MissionResult {
     pub separation_threshold_m: f64,
     /// The ground station's own JSON summary (null when it printed none).
     pub ground: serde_json::Value,
+    /// When the ground station exited before the mission ended, simulated s (null otherwise).
+    pub ground_exit_s: Option<f64>,
+    /// How it exited: its exit status, e.g. `signal: 9 (SIGKILL)` (null otherwise).
+    pub ground_exit: Option<String>,
+    /// Drones that landed and disarmed themselves (a landing without the ground).
+    pub drones_landed: usize,
+    /// When each drone began to land (its autopilot accepted `MAV_CMD_NAV_LAND`), simulated
+    /// s, by herder index (null: it did not).
+    pub landing_start_s: Vec<Option<f64>>,
+    /// Each drone's touchdown time, simulated s, by herder index (null: did not land).
+    pub touchdown_s: Vec<Option<f64>>,
 }
 
 impl MissionResult {
@@ -186,7 +224,7 @@ impl MissionResult {
             (false, Some(e)) => format!("failed: {}", ending_text(e)),
             (false, None) => "unfinished".to_string(),
         };
-        let rows = [
+        let mut rows = vec![
             (
                 "scenario",
                 format!("{} (seed {})", self.scenario, self.seed),
@@ -233,6 +271,17 @@ impl MissionResult {
                 ),
             ),
         ];
+        if let Some(t) = self.ground_exit_s {
+            rows.push((
+                "ground exit",
+                format!(
+                    "at {t:.1} s ({}); {}/{} drones landed",
+                    self.ground_exit.as_deref().unwrap_or("?"),
+                    self.drones_landed,
+                    self.herders
+                ),
+            ));
+        }
         let mut out = String::new();
         for (name, value) in rows {
             let _ = writeln!(out, "  {name:<13} {value}");
@@ -249,6 +298,7 @@ mod tests {
         TickReport {
             time_s,
             flying: 2,
+            armed: 2,
             ending,
         }
     }
@@ -287,6 +337,33 @@ mod tests {
     }
 
     #[test]
+    fn after_the_ground_exits_the_loop_waits_for_the_drones_to_land() {
+        let mut watch = MissionWatch::new(2, 4);
+        let exited = tick(12.0, Some(Ending::GroundExited));
+        let step = watch.observe(&exited, 1, 0.1, true);
+        assert!(step.progress.unwrap().contains("the ground station exited"));
+        // Still armed long after the usual grace: the loop goes on.
+        let step = watch.observe(&tick(12.0 + GRACE_S + 10.0, exited.ending), 1, 0.2, true);
+        assert_eq!(step.stop, None);
+        // Both down: stop, and say so.
+        let down = TickReport {
+            armed: 0,
+            ..tick(26.0, exited.ending)
+        };
+        let step = watch.observe(&down, 1, 0.3, true);
+        assert_eq!(step.stop, Some(Stop::Ended));
+        assert!(step.progress.unwrap().contains("landed and disarmed"));
+        // Never down: stop after the landing wait.
+        let mut watch = MissionWatch::new(2, 4);
+        watch.observe(&exited, 1, 0.1, true);
+        let late = tick(12.0 + LANDING_WAIT_S - 0.1, exited.ending);
+        assert_eq!(watch.observe(&late, 1, 0.2, true).stop, None);
+        let step = watch.observe(&tick(12.0 + LANDING_WAIT_S, exited.ending), 1, 0.3, true);
+        assert_eq!(step.stop, Some(Stop::Ended));
+        assert!(step.progress.unwrap().contains("2/2 drones still armed"));
+    }
+
+    #[test]
     fn a_fleet_that_never_takes_off_is_given_up() {
         let mut watch = MissionWatch::new(2, 4);
         assert_eq!(watch.observe(&tick(0.0, None), 0, 59.0, false).stop, None);
@@ -320,6 +397,11 @@ mod tests {
             separation_threshold_m: 0.5,
             ground: serde_json::json!({"outcome": "complete", "tracks": 4,
                 "uplink_frames_sent": 1200, "fleet_frames_dropped": 0}),
+            ground_exit_s: None,
+            ground_exit: None,
+            drones_landed: 0,
+            landing_start_s: vec![None, None],
+            touchdown_s: vec![None, None],
         };
         let table = result.table();
         assert!(table.contains("outcome       success"), "{table}");
@@ -346,5 +428,23 @@ mod tests {
             "{table}"
         );
         assert!(table.contains("time to goal  -"), "{table}");
+        let killed = MissionResult {
+            ending: Some(Ending::GroundExited),
+            ground_exit_s: Some(12.0),
+            ground_exit: Some("signal: 9 (SIGKILL)".into()),
+            drones_landed: 2,
+            landing_start_s: vec![Some(23.1), Some(23.1)],
+            touchdown_s: vec![Some(25.9), Some(26.1)],
+            ..failed
+        };
+        let table = killed.table();
+        assert!(
+            table.contains("failed: the ground station exited"),
+            "{table}"
+        );
+        assert!(
+            table.contains("at 12.0 s (signal: 9 (SIGKILL)); 2/2 drones landed"),
+            "{table}"
+        );
     }
 }

@@ -32,6 +32,9 @@ pub struct LaunchPlan {
     pub ground_idle_timeout_s: f64,
     /// The daemons keep at least this far apart (`--separation-m`); `None`: the rule is off.
     pub keep_apart_m: Option<f64>,
+    /// The daemons land after this long of stale uplink in flight (`--land-after-s`), s; 0:
+    /// never.
+    pub land_after_s: f64,
 }
 
 /// The ground station's command: it listens for the fleet at `fleet`, and sends each drone's
@@ -132,6 +135,8 @@ pub fn daemon_command(
         .arg("--sim-clock")
         .arg("--max-speed")
         .arg(scenario.limits.herder.to_string())
+        .arg("--land-after-s")
+        .arg(plan.land_after_s.to_string())
         .stdout(Stdio::null())
         .stderr(log);
     if let Some(m) = plan.keep_apart_m {

@@ -89,6 +89,11 @@ pub struct SitlConfig {
     /// Two drones closer than this (3-D, m) during flight is a separation breach: 0.5 m in a
     /// room-sized arena (50 m or less across), 3 m otherwise.
     pub separation_m: f64,
+    /// The daemons land after their uplink has been stale this long in flight
+    /// (`skyherd-onboard --land-after-s`), s of simulated time; 0: they never land.
+    pub land_after_s: f64,
+    /// Fault: the mission kills the ground station (SIGKILL) at this simulated time, s.
+    pub kill_ground_at: Option<f64>,
 }
 
 impl SitlConfig {
@@ -115,6 +120,8 @@ impl SitlConfig {
             dynamics: None,
             wind: WindConfig::CALM,
             separation_m: 0.0,
+            land_after_s: 10.0,
+            kill_ground_at: None,
         }
         .with_default_separation()
     }
@@ -209,6 +216,21 @@ impl SitlConfig {
         if !(self.separation_m.is_finite() && self.separation_m >= 0.0) {
             return bad("separation", "must be a finite distance >= 0");
         }
+        // At most a day, as the daemon accepts.
+        if !(self.land_after_s.is_finite() && (0.0..=86_400.0).contains(&self.land_after_s)) {
+            return bad(
+                "land after",
+                "must be 0 (never land) to 86400 seconds of stale uplink",
+            );
+        }
+        if let Some(at) = self.kill_ground_at
+            && !(at.is_finite() && at >= 0.0)
+        {
+            return bad(
+                "ground kill",
+                "the time must be a finite number of seconds >= 0",
+            );
+        }
         if let Some((index, at)) = self.lose_drone {
             let drones = self.scenario.herder_count();
             if index >= drones {
@@ -238,7 +260,14 @@ pub enum Ending {
     LeftArea,
     /// The time limit passed.
     TimeLimit,
+    /// The ground station process exited (killed, crashed) before the episode ended; the
+    /// loop goes on until the drones have landed (see [`LANDING_WAIT_S`]).
+    GroundExited,
 }
+
+/// After the ground station exited, the loop runs on until every drone has landed and
+/// disarmed, or this many simulated seconds have passed.
+pub const LANDING_WAIT_S: f64 = 30.0;
 
 /// What one tick did.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -247,6 +276,8 @@ pub struct TickReport {
     pub time_s: f64,
     /// Drones flying under external control (armed, OFFBOARD/GUIDED).
     pub flying: usize,
+    /// Live drones armed (flying, holding, landing): not yet on the ground and disarmed.
+    pub armed: usize,
     /// Set once the episode has ended.
     pub ending: Option<Ending>,
 }
@@ -275,6 +306,8 @@ pub struct SitlWorld {
     ack_frames: Vec<Frame>,
     min_separation_m: f64,
     separation_breaches: u64,
+    /// When the ground station exited, s, and how (its exit status, in words).
+    ground_exit: Option<(f64, String)>,
 }
 
 impl std::fmt::Debug for SitlWorld {
@@ -345,6 +378,7 @@ impl SitlWorld {
             ack_frames: Vec::new(),
             min_separation_m: f64::INFINITY,
             separation_breaches: 0,
+            ground_exit: None,
         })
     }
 
@@ -352,6 +386,44 @@ impl SitlWorld {
     /// drone or before the flight).
     pub fn min_separation_m(&self) -> f64 {
         self.min_separation_m
+    }
+
+    /// The ground station exited at the current simulated time, `how` (its exit status, in
+    /// words). Before the end of the episode that ends it, as [`Ending::GroundExited`]; the
+    /// loop stops waiting for the ground's scan acknowledgements either way. Only the first
+    /// call counts.
+    pub fn ground_exited(&mut self, how: String) {
+        if self.ground_exit.is_some() {
+            return;
+        }
+        self.ground_exit = Some((self.time_s, how));
+        self.ground_acking = false;
+        if self.ending.is_none() {
+            self.ending = Some((Ending::GroundExited, self.time_s));
+        }
+    }
+
+    /// When the ground station exited, s, and how.
+    pub fn ground_exit(&self) -> Option<&(f64, String)> {
+        self.ground_exit.as_ref()
+    }
+
+    /// When each drone began to land, s, by herder index: its autopilot accepted
+    /// `MAV_CMD_NAV_LAND` (`None`: it did not, or its link was cut).
+    pub fn landing_starts(&self) -> Vec<Option<f64>> {
+        self.nodes
+            .iter()
+            .map(|n| n.as_ref().and_then(|n| n.autopilot().landing_since()))
+            .collect()
+    }
+
+    /// Each drone's touchdown time, s, by herder index: when its autopilot landed and disarmed
+    /// itself (`None`: it did not, or its link was cut).
+    pub fn touchdowns(&self) -> Vec<Option<f64>> {
+        self.nodes
+            .iter()
+            .map(|n| n.as_ref().and_then(|n| n.autopilot().touchdown_at()))
+            .collect()
     }
 
     /// Ticks of flight in which some two drones were closer than the config's `separation_m`.
@@ -458,7 +530,7 @@ impl SitlWorld {
             *slot = None;
         }
         // 1. Autopilots: receive and fly (they report after the world has moved, step 4).
-        let mut flying = 0;
+        let (mut flying, mut armed) = (0, 0);
         for (i, slot) in self.nodes.iter_mut().enumerate() {
             self.actions[i] = match slot {
                 Some(node) => {
@@ -467,6 +539,7 @@ impl SitlWorld {
                     if ap.armed() && ap.mode() == ap.config().flavour.external_mode() {
                         flying += 1;
                     }
+                    armed += usize::from(ap.armed());
                     v
                 }
                 None => [0.0; 3],
@@ -570,6 +643,7 @@ impl SitlWorld {
         Ok(TickReport {
             time_s: t,
             flying,
+            armed,
             ending: self.ending.map(|(e, _)| e),
         })
     }
@@ -586,7 +660,11 @@ impl SitlWorld {
                         self.ack_frames.clear();
                         self.sensor_codec.decode(&buffer[..n], &mut self.ack_frames);
                         for frame in &self.ack_frames {
-                            if let Some(at) = acknowledged_scan(&frame.message) {
+                            // (A late acknowledgement from a ground that has exited does
+                            // not make the loop wait for it again.)
+                            if let Some(at) = acknowledged_scan(&frame.message)
+                                && self.ground_exit.is_none()
+                            {
                                 self.ground_acking = true;
                                 self.acked_scan = self.acked_scan.max(at);
                             }
@@ -666,6 +744,14 @@ mod tests {
         let mut c = ok.clone();
         c.time_limit_s = 0.0;
         assert_eq!(field(c), "time limit");
+        for bad in [f64::NAN, -1.0, f64::INFINITY] {
+            let mut c = ok.clone();
+            c.land_after_s = bad;
+            assert_eq!(field(c), "land after");
+            let mut c = ok.clone();
+            c.kill_ground_at = Some(bad);
+            assert_eq!(field(c), "ground kill");
+        }
         let mut c = ok;
         c.speed = -1.0;
         assert!(SitlWorld::new(c).is_err(), "the world refuses it too");

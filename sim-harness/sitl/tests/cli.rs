@@ -54,6 +54,13 @@ fn a_bad_fault_flag_is_refused() {
         ("--cut-uplink", "5"),
         ("--cut-uplink", "3,-5"),
         ("--wind", "arena"),
+        ("--land-after-s", "nan"),
+        ("--land-after-s", "-1"),
+        ("--land-after-s", "inf"),
+        ("--kill-ground-at", "nan"),
+        ("--kill-ground-at", "-2"),
+        ("--kill-ground-at", "inf"),
+        ("--kill-ground-at", "soon"),
     ] {
         let arg = format!("{flag}={value}");
         let (ok, err) = sitl(&["--scenario", "indoor", "--model", model, "--out", out, &arg]);

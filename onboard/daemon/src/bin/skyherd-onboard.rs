@@ -89,6 +89,10 @@ struct RunArgs {
     /// (simulator time with --sim-clock).
     #[arg(long, default_value_t = 1000)]
     uplink_timeout_ms: u64,
+    /// Land after the uplink has been stale this long in flight, seconds of the daemon's clock
+    /// (a dead ground station); 0: never land, hold until the ground is back.
+    #[arg(long, default_value_t = 10.0)]
+    land_after_s: f64,
     /// Keep at least this far (3-D, m) from the other drones of the snapshot (the reciprocal
     /// rule of skyherd_onboard::separation); 0: off.
     #[arg(long, default_value_t = 0.0)]
@@ -148,6 +152,16 @@ fn run(args: RunArgs) -> Result<()> {
     let mut config = CoreConfig::new(args.system_id, herder_index, flavour);
     config.max_speed = args.max_speed.unwrap_or(actor.max_speed());
     config.uplink_timeout = std::time::Duration::from_millis(args.uplink_timeout_ms);
+    // At most a day: Duration::from_secs_f64 panics past its range, and a longer wait is a
+    // typo for "never" (0).
+    if !(args.land_after_s.is_finite() && (0.0..=86_400.0).contains(&args.land_after_s)) {
+        bail!(
+            "--land-after-s must be 0 (never land) to 86400 seconds, got {}",
+            args.land_after_s
+        );
+    }
+    config.land_after =
+        (args.land_after_s > 0.0).then(|| std::time::Duration::from_secs_f64(args.land_after_s));
     if !(args.separation_m.is_finite() && (0.0..=100.0).contains(&args.separation_m)) {
         bail!(
             "--separation-m must be 0 (off) to 100 m, got {}",
@@ -188,10 +202,11 @@ fn run(args: RunArgs) -> Result<()> {
         clock,
     };
     log::info!(
-        "skyherd-onboard {}: system {} (herder {herder_index}), {flavour:?}, {clock:?}, max {} m/s",
+        "skyherd-onboard {}: system {} (herder {herder_index}), {flavour:?}, {clock:?}, max {} m/s, land after {:?} of stale uplink",
         env!("CARGO_PKG_VERSION"),
         args.system_id,
-        config.max_speed
+        config.max_speed,
+        config.land_after
     );
     // Runs until the process is killed; holding is the autopilot's job once we are gone
     // (PX4 and ArduPilot fail safe when setpoints stop).

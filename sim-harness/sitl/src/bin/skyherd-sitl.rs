@@ -91,6 +91,14 @@ struct Cli {
     /// limit is mission control's choice, not the scenario's training-episode step limit.
     #[arg(long, default_value_t = 300.0)]
     time_limit: f64,
+    /// The daemons land after their uplink has been stale this long in flight, simulated
+    /// seconds (skyherd-onboard --land-after-s); 0: they hold until the ground is back.
+    #[arg(long, default_value_t = 10.0)]
+    land_after_s: f64,
+    /// Fault: kill the ground station (SIGKILL) at this simulated time, seconds. The mission
+    /// then fails, once the drones have landed on their own (or 30 simulated s later).
+    #[arg(long)]
+    kill_ground_at: Option<f64>,
 }
 
 /// The exit status of a mission that ran but did not succeed (1 is an error before or during
@@ -151,6 +159,7 @@ fn main() -> Result<std::process::ExitCode> {
         } else {
             1.0
         },
+        land_after_s: sitl.config().land_after_s,
     };
     let uplink_ports: Vec<u16> = (0..drones)
         .map(|_| free_udp_port())
@@ -175,7 +184,7 @@ fn main() -> Result<std::process::ExitCode> {
         );
     }
 
-    let (states, wall_s) = fly(&mut sitl, world.targets.len())?;
+    let (states, wall_s) = fly(&mut sitl, world.targets.len(), &mut ground)?;
     // The ground ends on its own once it has seen the mission through; give it a moment.
     let ground_summary = read_ground_summary(&mut ground, Duration::from_secs(3));
     drop(daemons);
@@ -241,6 +250,8 @@ impl Cli {
             bail!("--time-limit must be a positive number of seconds");
         }
         config.time_limit_s = self.time_limit;
+        config.land_after_s = self.land_after_s;
+        config.kill_ground_at = self.kill_ground_at;
         config.dynamics = match self.dynamics {
             DynamicsArg::Off => None,
             DynamicsArg::Px4 => Some(DynamicsLimits::px4()),
@@ -293,6 +304,14 @@ impl Cli {
                     field: "lost drone",
                     ..
                 } => "--lose-drone",
+                SitlError::Invalid {
+                    field: "land after",
+                    ..
+                } => "--land-after-s",
+                SitlError::Invalid {
+                    field: "ground kill",
+                    ..
+                } => "--kill-ground-at",
                 _ => "settings",
             };
             anyhow::anyhow!("{flag}: {e}")
@@ -335,13 +354,52 @@ fn write_mission_key(out: &Path) -> Result<PathBuf> {
 }
 
 /// Run the lockstep loop until the watcher stops it: the recorded states and the wall time.
-fn fly(sitl: &mut SitlWorld, targets: usize) -> Result<(Vec<World>, f64)> {
+/// Kills the ground station when the config says so, and watches it: one that exits before
+/// the episode ended, other than cleanly (it exits 0 only after it has ended the mission with
+/// its drones), ends the episode (`Ending::GroundExited`).
+fn fly(sitl: &mut SitlWorld, targets: usize, ground: &mut Guard) -> Result<(Vec<World>, f64)> {
     let drones = sitl.world().herders.len();
     let mut watch = MissionWatch::new(drones, targets);
     let wall = Instant::now();
     let mut states: Vec<World> = vec![sitl.world().clone()];
+    let mut kill_at = sitl.config().kill_ground_at;
+    let mut ground_watched = true;
     loop {
-        let report = sitl.tick()?;
+        let mut report = sitl.tick()?;
+        if let Some(at) = kill_at
+            && report.time_s + 1e-9 >= at
+            && let Some(child) = ground.child()
+        {
+            kill_at = None;
+            // Child::kill is SIGKILL on Unix: a kill -9, no chance to flush or say goodbye.
+            match child.kill() {
+                Ok(()) => say(format!(
+                    "t={:6.1}s fault: killing the ground station (SIGKILL, pid {})",
+                    report.time_s,
+                    child.id()
+                )),
+                Err(e) => say(format!("fault: could not kill the ground station: {e}")),
+            }
+        }
+        if ground_watched
+            && let Some(child) = ground.child()
+            && let Ok(Some(status)) = child.try_wait()
+        {
+            ground_watched = false;
+            if status.success() && report.ending.is_none() {
+                say(format!(
+                    "t={:6.1}s the ground station finished its mission and exited",
+                    report.time_s
+                ));
+            } else if report.ending.is_none() {
+                say(format!(
+                    "the ground station exited ({status}) at t={:.1}s, before the mission ended; waiting for the drones to land",
+                    report.time_s
+                ));
+                sitl.ground_exited(status.to_string());
+                report.ending = sitl.ending().map(|(e, _)| e);
+            }
+        }
         let w = sitl.world();
         let in_goal = w.targets.iter().filter(|p| w.goal.contains(**p)).count();
         let step = watch.observe(
@@ -379,6 +437,7 @@ fn mission_result(
     wall_s: f64,
     ground: serde_json::Value,
 ) -> MissionResult {
+    let touchdown_s = sitl.touchdowns();
     let (ending, end_s) = match sitl.ending() {
         Some((e, t)) => (Some(e), Some(t)),
         None => (None, None),
@@ -410,6 +469,11 @@ fn mission_result(
         separation_breaches: sitl.separation_breaches(),
         separation_threshold_m: sitl.config().separation_m,
         ground,
+        ground_exit_s: sitl.ground_exit().map(|(t, _)| *t),
+        ground_exit: sitl.ground_exit().map(|(_, how)| how.clone()),
+        drones_landed: touchdown_s.iter().flatten().count(),
+        landing_start_s: sitl.landing_starts(),
+        touchdown_s,
     }
 }
 
