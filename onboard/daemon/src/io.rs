@@ -79,6 +79,11 @@ pub struct LinkOptions {
     pub ground: String,
     /// MAVLink 2 signing key for the ground link; `None` accepts unsigned uplink (tests only).
     pub signing_key: Option<[u8; KEY_LEN]>,
+    /// MAVLink 2 signing key for the autopilot link: every frame to the autopilot is signed
+    /// and unsigned or wrongly signed frames from it are dropped, so that a configured
+    /// autopilot (PX4 and ArduPilot verify signed links) refuses commands from anyone else.
+    /// `None`: unsigned, as a serial cable inside the airframe usually is.
+    pub autopilot_key: Option<[u8; KEY_LEN]>,
     /// Where the uplink's replay state (per-stream signing timestamps) is kept across restarts:
     /// read at start, written at most once a second while it changes and when the daemon
     /// stops. `None`: kept in memory only (a restart then refuses only frames over a minute
@@ -681,7 +686,14 @@ impl<P: OnboardPolicy> Daemon<P> {
             Some(path) => load_replay_state(path, now)?,
             None => ReplayGuard::new(now),
         };
-        let (autopilot, autopilot_local) = open_link("autopilot", &options.autopilot)?;
+        let (mut autopilot, autopilot_local) = open_link("autopilot", &options.autopilot)?;
+        if let Some(key) = options.autopilot_key {
+            // Link id 1: the autopilot link's own signing stream, apart from the uplink's 0.
+            autopilot.setup_signing(Some(skyherd_link::signing::signing_config(
+                &SigningKey(key),
+                1,
+            )));
+        }
         let (ground, ground_local, ground_mavlink) = open_ground(&options.ground)?;
         let autopilot = Arc::new(autopilot);
         let stop = Arc::new(AtomicBool::new(false));

@@ -133,6 +133,7 @@ fn daemon_flies_a_fake_px4_and_rejects_forged_uplink() {
             autopilot: format!("udpout:{autopilot_addr}"),
             ground: "udpin:127.0.0.1:0".to_string(),
             replay_state: None,
+            autopilot_key: None,
             signing_key: Some(KEY),
             clock: ClockMode::Wall { rate_hz: 20.0 },
         };
@@ -362,6 +363,7 @@ fn daemon_startup_errors_are_clear() {
         autopilot: "bogus:nowhere".to_string(),
         ground: "udpin:127.0.0.1:0".to_string(),
         replay_state: None,
+        autopilot_key: None,
         signing_key: None,
         clock: ClockMode::Simulator,
     };
@@ -388,6 +390,7 @@ fn sim_clock_ticks_once_per_position_at_simulator_time() {
             autopilot: format!("udpout:{autopilot_addr}"),
             ground: "udpin:127.0.0.1:0".to_string(),
             replay_state: None,
+            autopilot_key: None,
             signing_key: Some(KEY),
             clock: ClockMode::Simulator,
         };

@@ -22,8 +22,8 @@ pub struct LaunchPlan {
     pub daemon_wrapper: Option<String>,
     /// The model file the daemons fly.
     pub model: PathBuf,
-    /// The uplink signing key file.
-    pub key: PathBuf,
+    /// The mission's key folder ([`KeyFolder`]): `drone-N.key` per drone, `fleet.key`.
+    pub keys: PathBuf,
     /// Output folder (ground `.tlog` and CSV, daemon logs).
     pub out: PathBuf,
     /// Fault injection for the ground: `START,DURATION` of uplink cut.
@@ -73,8 +73,10 @@ pub fn ground_command(
         .arg(scenario.noise.sensing_std.max(1e-3).to_string())
         .arg("--scan-period")
         .arg(scan_period_s.to_string())
-        .arg("--key")
-        .arg(&plan.key)
+        .arg("--key-dir")
+        .arg(&plan.keys)
+        .arg("--fleet-key")
+        .arg(plan.keys.join(KeyFolder::FLEET))
         .arg("--tlog")
         .arg(plan.out.join("ground.tlog"))
         .arg("--csv")
@@ -131,7 +133,11 @@ pub fn daemon_command(
         .arg("--ground")
         .arg(format!("udpin:127.0.0.1:{uplink_port}"))
         .arg("--key")
-        .arg(&plan.key)
+        .arg(plan.keys.join(KeyFolder::drone(index + 1)))
+        .arg("--autopilot-key")
+        .arg(plan.keys.join(KeyFolder::FLEET))
+        .arg("--replay-state")
+        .arg(plan.out.join(format!("daemon-{}.replay", index + 1)))
         .arg("--sim-clock")
         .arg("--max-speed")
         .arg(scenario.limits.herder.to_string())
@@ -143,6 +149,81 @@ pub fn daemon_command(
         cmd.arg("--separation-m").arg(m.to_string());
     }
     Ok(cmd)
+}
+
+/// The mission's signing keys, in a fresh private folder outside the output folder (which is
+/// meant to be shared): `drone-N.key` for each drone's uplink (the ground and that drone's
+/// daemon only) and `fleet.key` (the mock autopilots, the sensor, the ground's fleet link and
+/// each daemon's autopilot link). Keys come from the operating system's randomness, files are
+/// created 0600 with `O_EXCL` in a folder created 0700; the folder is removed when dropped.
+#[derive(Debug)]
+pub struct KeyFolder {
+    path: PathBuf,
+    fleet: skyherd_link::SigningKey,
+}
+
+impl KeyFolder {
+    /// The fleet key's file name.
+    pub const FLEET: &'static str = "fleet.key";
+
+    /// Drone `system_id`'s uplink key file name.
+    pub fn drone(system_id: usize) -> String {
+        format!("drone-{system_id}.key")
+    }
+
+    /// Makes the folder under `parent` (a name no one can have guessed: 64 random bits) and
+    /// the keys of `drones` drones.
+    ///
+    /// # Errors
+    /// When the folder or a key cannot be made.
+    pub fn provision(parent: &std::path::Path, drones: usize) -> io::Result<Self> {
+        let mut tag = [0u8; 8];
+        getrandom::fill(&mut tag).map_err(|e| io::Error::other(e.to_string()))?;
+        let name: String = tag.iter().map(|b| format!("{b:02x}")).collect();
+        let path = parent.join(format!("skyherd-keys-{name}"));
+        let mut builder = std::fs::DirBuilder::new();
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::DirBuilderExt;
+            builder.mode(0o700);
+        }
+        // Not recursive: an existing folder (or a symlink in its place) is an error.
+        builder.create(&path)?;
+        // Owned from here on, so that a failure below removes the folder again.
+        let mut folder = KeyFolder {
+            fleet: skyherd_link::SigningKey([0; 32]),
+            path,
+        };
+        let write = |name: &str| -> io::Result<skyherd_link::SigningKey> {
+            let key = skyherd_link::SigningKey::generate()
+                .map_err(|e| io::Error::other(e.to_string()))?;
+            key.write_new_file(&folder.path.join(name))
+                .map_err(|e| io::Error::other(e.to_string()))?;
+            Ok(key)
+        };
+        for id in 1..=drones {
+            write(&Self::drone(id))?;
+        }
+        let fleet = write(Self::FLEET)?;
+        folder.fleet = fleet;
+        Ok(folder)
+    }
+
+    /// The folder.
+    pub fn path(&self) -> &std::path::Path {
+        &self.path
+    }
+
+    /// The fleet key (the simulator's autopilots and sensor sign with it).
+    pub fn fleet_key(&self) -> &skyherd_link::SigningKey {
+        &self.fleet
+    }
+}
+
+impl Drop for KeyFolder {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.path);
+    }
 }
 
 /// A child process that is killed when dropped.
@@ -213,4 +294,42 @@ pub fn sibling(name: &str) -> io::Result<PathBuf> {
         ));
     }
     Ok(path)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn each_mission_gets_private_keys_of_its_own_that_go_with_it() {
+        use std::os::unix::fs::PermissionsExt;
+        let parent = std::env::temp_dir();
+        let a = KeyFolder::provision(&parent, 2).expect("keys");
+        let b = KeyFolder::provision(&parent, 2).expect("keys");
+        assert_ne!(a.path(), b.path());
+        let mode =
+            |p: &std::path::Path| std::fs::metadata(p).expect("meta").permissions().mode() & 0o777;
+        assert_eq!(mode(a.path()), 0o700);
+        let mut seen = Vec::new();
+        for folder in [&a, &b] {
+            for name in [
+                KeyFolder::drone(1),
+                KeyFolder::drone(2),
+                KeyFolder::FLEET.into(),
+            ] {
+                let path = folder.path().join(&name);
+                assert_eq!(mode(&path), 0o600, "{name}");
+                let key = skyherd_link::SigningKey::from_file(&path).expect("a key");
+                assert!(!seen.contains(&key), "{name} repeats a key");
+                seen.push(key);
+            }
+        }
+        assert_eq!(
+            &skyherd_link::SigningKey::from_file(&a.path().join(KeyFolder::FLEET)).expect("fleet"),
+            a.fleet_key()
+        );
+        let gone = a.path().to_path_buf();
+        drop(a);
+        assert!(!gone.exists(), "the keys outlived the mission");
+    }
 }

@@ -63,6 +63,10 @@ struct RunArgs {
     /// for bench tests only.
     #[arg(long)]
     insecure: bool,
+    /// MAVLink 2 signing key for the autopilot link (the autopilot must hold the same key and
+    /// verify it: then it refuses commands from anyone else) [default: unsigned].
+    #[arg(long)]
+    autopilot_key: Option<PathBuf>,
     /// Keep the uplink's replay state (per-stream signing timestamps) in this file, so that a
     /// restarted daemon still refuses frames it accepted before [default: in memory only].
     #[arg(long)]
@@ -199,6 +203,12 @@ fn run(args: RunArgs) -> Result<()> {
         ground: args.ground,
         signing_key,
         replay_state: args.replay_state,
+        autopilot_key: args
+            .autopilot_key
+            .as_deref()
+            .map(SigningKey::from_file)
+            .transpose()?
+            .map(|k| k.0),
         clock,
     };
     log::info!(

@@ -14,17 +14,18 @@
 
 use std::io::{Read, Write};
 use std::net::{SocketAddr, UdpSocket};
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, bail};
 use clap::Parser;
+use skyherd_link::Signing;
 use skyherd_sim::dynamics::{DynamicsLimits, WindConfig};
 use skyherd_sim::scenario::HerderCount;
 use skyherd_sim::{Scenario, World};
 use skyherd_sitl::FaultConfig;
 use skyherd_sitl::console::{MissionResult, MissionWatch, Stop};
-use skyherd_sitl::launch::{self, Guard, LaunchPlan};
+use skyherd_sitl::launch::{self, Guard, KeyFolder, LaunchPlan};
 use skyherd_sitl::mission::{Ending, SitlConfig, SitlError, SitlWorld};
 
 #[derive(Parser, Debug)]
@@ -124,9 +125,20 @@ fn main() -> Result<std::process::ExitCode> {
     let (scenario, seed) = cli.scenario()?;
     let ground_addr: SocketAddr = ([127, 0, 0, 1], free_udp_port()?).into();
     // Every flag is checked before anything is written or started.
-    let config = cli.sitl_config(&scenario, seed, ground_addr)?;
+    let mut config = cli.sitl_config(&scenario, seed, ground_addr)?;
     std::fs::create_dir_all(&cli.out).with_context(|| format!("creating {}", cli.out.display()))?;
-    let key = write_mission_key(&cli.out)?;
+    // Keys live outside the output folder, which is meant to be shared, and go with this
+    // process (the folder is removed when `keys` drops).
+    let keys = KeyFolder::provision(
+        &std::env::temp_dir(),
+        config.scenario.herders.resolve(config.scenario.targets),
+    )
+    .context("making the mission's signing keys")?;
+    config.signing = Some(Signing {
+        key: keys.fleet_key().clone(),
+        link_id: 2,
+        accept_unsigned: false,
+    });
     let mut sitl = SitlWorld::new(config)?;
     let world = sitl.world().clone();
     let drones = world.herders.len();
@@ -148,7 +160,7 @@ fn main() -> Result<std::process::ExitCode> {
         },
         daemon_wrapper: cli.daemon_wrapper.clone(),
         model: cli.model.clone(),
-        key,
+        keys: keys.path().to_path_buf(),
         out: cli.out.clone(),
         cut_uplink: cli.cut_uplink.clone(),
         // As fast as possible, scans come every few milliseconds and a silent second means the
@@ -327,30 +339,6 @@ fn say(line: String) {
 
 fn free_udp_port() -> Result<u16> {
     Ok(UdpSocket::bind("127.0.0.1:0")?.local_addr()?.port())
-}
-
-/// A fresh signing key for this mission from the operating system's randomness, shared by
-/// every uplink; returns its file. The file is created anew (an old one, or a symlink in its
-/// place, is removed first, never followed), readable by its owner only.
-fn write_mission_key(out: &Path) -> Result<PathBuf> {
-    let key_path = out.join("mission.key");
-    let mut key = [0u8; 32];
-    getrandom::fill(&mut key).map_err(|e| anyhow::anyhow!("no OS randomness for the key: {e}"))?;
-    match std::fs::remove_file(&key_path) {
-        Ok(()) => {}
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => {}
-        Err(e) => return Err(e).with_context(|| format!("replacing {}", key_path.display())),
-    }
-    let mut options = std::fs::OpenOptions::new();
-    // create_new is O_CREAT | O_EXCL: it fails on anything already there, a symlink included.
-    options.write(true).create_new(true);
-    #[cfg(unix)]
-    std::os::unix::fs::OpenOptionsExt::mode(&mut options, 0o600);
-    options
-        .open(&key_path)
-        .and_then(|mut f| f.write_all(&key))
-        .with_context(|| format!("writing {}", key_path.display()))?;
-    Ok(key_path)
 }
 
 /// Run the lockstep loop until the watcher stops it: the recorded states and the wall time.
