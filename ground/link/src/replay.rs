@@ -184,6 +184,11 @@ impl ReplayGuard {
         self.streams.get(&stream).copied().map(SigningTime)
     }
 
+    /// How many streams are remembered.
+    pub fn stream_count(&self) -> usize {
+        self.streams.len()
+    }
+
     /// Whether anything changed since the last [`mark_saved`](Self::mark_saved).
     pub fn is_dirty(&self) -> bool {
         self.dirty

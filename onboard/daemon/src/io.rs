@@ -344,9 +344,9 @@ pub fn load_replay_state(path: &std::path::Path, now: SigningTime) -> Result<Rep
     let guard =
         ReplayGuard::from_bytes(&bytes).map_err(|e: ReplayStateError| bad(e.to_string()))?;
     info!(
-        "replay state read from {}: frames signed before {:?} stay refused",
+        "replay state read from {}: {} signing streams remembered",
         path.display(),
-        guard.current()
+        guard.stream_count()
     );
     Ok(guard)
 }
