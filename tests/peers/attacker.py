@@ -184,16 +184,21 @@ def cmd_flood(a):
 def cmd_disarm(a):
     target = ("127.0.0.1", a.autopilot)
     s = udp()
-    # Row 4: an unsigned disarm from a foreign system.
+    key = read_key(a.key)
+    # The key holder arms the vehicle: acknowledged.
+    owner = encoder(255, 190, key=key, link_id=1)
+    s.sendto(owner.command_long_encode(a.system, 1, 400, 0, 1, 0, 0, 0, 0, 0, 0).pack(owner), target)
+    acks_signed = count_acks(s, 1.0, key)
+    # Row 4: an unsigned disarm from a foreign system, forced (param 2 = 21196, as PX4 takes
+    # a forced disarm in the air).
     foreign = encoder(77, 1)
-    s.sendto(foreign.command_long_encode(a.system, 1, 400, 0, 0, 21196, 0, 0, 0, 0, 0).pack(foreign), target)
-    time.sleep(0.3)
-    acks_unsigned = count_acks(s, 0.5)
-    # The same from the key holder: acknowledged.
-    owner = encoder(255, 190, key=read_key(a.key), link_id=1)
-    s.sendto(owner.command_long_encode(a.system, 1, 400, 0, 0, 0, 0, 0, 0, 0, 0).pack(owner), target)
-    acks_signed = count_acks(s, 1.0, read_key(a.key))
-    print(json.dumps({"acks_to_unsigned": acks_unsigned, "acks_to_signed": acks_signed}))
+    for _ in range(3):
+        s.sendto(
+            foreign.command_long_encode(a.system, 1, 400, 0, 0, 21196, 0, 0, 0, 0, 0).pack(foreign),
+            target,
+        )
+    acks_unsigned = count_acks(s, 1.0, key)
+    print(json.dumps({"acks_to_signed_arm": acks_signed, "acks_to_unsigned_disarm": acks_unsigned}))
 
 
 def count_acks(sock, seconds, key=None):

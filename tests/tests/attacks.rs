@@ -349,3 +349,40 @@ fn a_zero_byte_flood_does_not_change_the_indoor_mission() {
         t(&flooded)
     );
 }
+
+/// Row 9: `kill -9` of one daemon mid-mission (`skyherd-sitl --kill-daemon 0@10`) is reported
+/// by the ground as a lost drone, though that drone's autopilot still reports; the other
+/// drone goes on with the mission.
+#[test]
+fn a_killed_daemon_is_a_lost_drone() {
+    let out = scratch("killed-daemon");
+    binary("skyherd-ground");
+    binary("skyherd-onboard");
+    let output = Command::new(binary("skyherd-sitl"))
+        .current_dir(repo())
+        .args([
+            "--model",
+            "models/mtddpg-v3.skym",
+            "--scenario",
+            "indoor",
+            "--seed",
+            "0",
+        ])
+        .args(["--kill-daemon", "0@10", "--out"])
+        .arg(&out)
+        .output()
+        .expect("skyherd-sitl runs");
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(stderr.contains("killing drone 1's daemon"), "{stderr}");
+    let result: Value = serde_json::from_str(
+        &std::fs::read_to_string(out.join("result.json")).expect("result.json"),
+    )
+    .expect("JSON");
+    assert_eq!(
+        result["ground"]["lost_drones"],
+        serde_json::json!([1]),
+        "{result}"
+    );
+    assert_ne!(result["ground"]["outcome"], "aborted", "{result}");
+    std::fs::remove_dir_all(&out).ok();
+}

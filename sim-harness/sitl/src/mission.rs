@@ -94,6 +94,8 @@ pub struct SitlConfig {
     pub land_after_s: f64,
     /// Fault: the mission kills the ground station (SIGKILL) at this simulated time, s.
     pub kill_ground_at: Option<f64>,
+    /// Fault: kill drone `.0`'s daemon (SIGKILL) at simulated time `.1`, seconds.
+    pub kill_daemon: Option<(usize, f64)>,
 }
 
 impl SitlConfig {
@@ -122,6 +124,7 @@ impl SitlConfig {
             separation_m: 0.0,
             land_after_s: 10.0,
             kill_ground_at: None,
+            kill_daemon: None,
         }
         .with_default_separation()
     }
@@ -301,6 +304,8 @@ pub struct SitlWorld {
     before: Vec<[f64; 3]>,
     wall_start: Instant,
     lockstep_misses: u64,
+    /// Drones whose daemon is dead: not waited for.
+    daemons_gone: Vec<usize>,
     ground_acking: bool,
     acked_scan: f64,
     ack_frames: Vec<Frame>,
@@ -373,6 +378,7 @@ impl SitlWorld {
             before: Vec::with_capacity(herders),
             wall_start: Instant::now(),
             lockstep_misses: 0,
+            daemons_gone: Vec::new(),
             ground_acking,
             acked_scan: f64::NEG_INFINITY,
             ack_frames: Vec::new(),
@@ -467,6 +473,14 @@ impl SitlWorld {
     /// Total distance flown by all herders since the start of flight, metres.
     pub fn path_length(&self) -> f64 {
         self.path_length
+    }
+
+    /// Drone `index`'s daemon is known to be dead (the harness killed it): lockstep stops
+    /// waiting for its answers, so that the other drones fly on at full pace.
+    pub fn daemon_gone(&mut self, index: usize) {
+        if !self.daemons_gone.contains(&index) {
+            self.daemons_gone.push(index);
+        }
     }
 
     /// Ticks in which a streaming daemon did not answer within the lockstep timeout.
@@ -700,7 +714,14 @@ impl SitlWorld {
         };
         loop {
             let mut waiting = false;
-            for node in self.nodes.iter_mut().flatten() {
+            let gone = &self.daemons_gone;
+            let live = self
+                .nodes
+                .iter_mut()
+                .enumerate()
+                .filter(|(i, _)| !gone.contains(i))
+                .filter_map(|(_, n)| n.as_mut());
+            for node in live {
                 if unanswered(node) {
                     // Same `t`: the autopilot receives without moving or re-sending telemetry.
                     node.step(t)?;

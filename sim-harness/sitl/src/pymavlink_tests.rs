@@ -167,3 +167,73 @@ fn pymavlink_sees_arms_switches_mode_and_reads_our_tlog() {
     let first = report["tlog_first_timestamp"].as_f64().unwrap();
     assert!((first - 1_767_225_600.0).abs() < 5.0, "tlog time {first}");
 }
+
+/// Row 4 of the threat table (`docs/security.md`): an autopilot whose link is signed refuses
+/// an unsigned, forced disarm from a foreign system (pymavlink as the attacker, the script
+/// `tests/peers/attacker.py`), while the key holder's signed arm is acknowledged.
+#[test]
+fn a_signing_autopilot_refuses_a_foreign_unsigned_disarm() {
+    let python = workspace_root().join(".venv/bin/python");
+    assert!(
+        python.exists(),
+        "no Python venv at {} with pymavlink: run scripts/setup.sh",
+        python.display()
+    );
+    let dir = std::env::temp_dir().join(format!("skyherd-disarm-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let key_path = dir.join("fleet.key");
+    let _ = std::fs::remove_file(&key_path);
+    let key = skyherd_link::SigningKey::generate().unwrap();
+    key.write_new_file(&key_path).unwrap();
+    let node = AutopilotNode::bind(
+        "127.0.0.1:0".parse().unwrap(),
+        MockAutopilot::new(AutopilotConfig::px4(1), [0.0, 0.0, -2.0], 0.0),
+        NodeOptions {
+            signing: Some(skyherd_link::Signing {
+                key,
+                link_id: 2,
+                accept_unsigned: false,
+            }),
+            ..NodeOptions::default()
+        },
+    )
+    .unwrap();
+    let port = node.local_addr().unwrap().port();
+    let stop = Arc::new(AtomicBool::new(false));
+    let runner = node.spawn_realtime(50.0, stop.clone());
+    let out = Command::new(&python)
+        .arg(workspace_root().join("tests/peers/attacker.py"))
+        .args(["disarm", "--autopilot", &port.to_string(), "--key"])
+        .arg(&key_path)
+        .env("MAVLINK20", "1")
+        .output()
+        .expect("the attacker starts");
+    stop.store(true, Ordering::Relaxed);
+    let node = runner.join().unwrap().unwrap();
+    std::fs::remove_dir_all(&dir).ok();
+    let line = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        out.status.success(),
+        "{line} {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let report: serde_json::Value = serde_json::from_str(line.trim()).expect("JSON");
+    eprintln!("attacker: {report}");
+    assert_eq!(
+        report["acks_to_signed_arm"],
+        serde_json::json!([0]),
+        "{report}"
+    );
+    assert_eq!(
+        report["acks_to_unsigned_disarm"],
+        serde_json::json!([]),
+        "{report}"
+    );
+    assert!(node.autopilot().armed(), "the forged disarm disarmed it");
+    assert_eq!(
+        node.codec_stats().unsigned_rejected,
+        3,
+        "{:?}",
+        node.codec_stats()
+    );
+}

@@ -61,6 +61,9 @@ fn a_bad_fault_flag_is_refused() {
         ("--kill-ground-at", "-2"),
         ("--kill-ground-at", "inf"),
         ("--kill-ground-at", "soon"),
+        ("--kill-daemon", "5@10"),
+        ("--kill-daemon", "0@nan"),
+        ("--kill-daemon", "0"),
     ] {
         let arg = format!("{flag}={value}");
         let (ok, err) = sitl(&["--scenario", "indoor", "--model", model, "--out", out, &arg]);

@@ -71,6 +71,10 @@ struct Cli {
     /// Cut drone INDEX's autopilot link for good at simulated time T: INDEX@T.
     #[arg(long)]
     lose_drone: Option<String>,
+    /// Fault: kill drone INDEX's onboard daemon (SIGKILL) at simulated time T: INDEX@T. The
+    /// ground should then count that drone as lost.
+    #[arg(long)]
+    kill_daemon: Option<String>,
     /// Cut the ground's uplink to every drone for DURATION seconds from START (START,DURATION).
     #[arg(long)]
     cut_uplink: Option<String>,
@@ -196,7 +200,7 @@ fn main() -> Result<std::process::ExitCode> {
         );
     }
 
-    let (states, wall_s) = fly(&mut sitl, world.targets.len(), &mut ground)?;
+    let (states, wall_s) = fly(&mut sitl, world.targets.len(), &mut ground, &mut daemons)?;
     // The ground ends on its own once it has seen the mission through; give it a moment.
     let ground_summary = read_ground_summary(&mut ground, Duration::from_secs(3));
     drop(daemons);
@@ -293,6 +297,20 @@ impl Cli {
                 ),
             }
         }
+        if let Some(spec) = &self.kill_daemon {
+            let parsed = spec.split_once('@').and_then(|(index, at)| {
+                Some((index.parse::<usize>().ok()?, at.parse::<f64>().ok()?))
+            });
+            let drones = scenario.herder_count();
+            match parsed {
+                Some((index, at)) if index < drones && at.is_finite() && at >= 0.0 => {
+                    config.kill_daemon = Some((index, at));
+                }
+                _ => bail!(
+                    "--kill-daemon must be INDEX@TIME with INDEX in 0..{drones} and TIME >= 0 seconds, got {spec:?}"
+                ),
+            }
+        }
         if let Some(spec) = &self.lose_drone {
             let (index, at) = spec
                 .split_once('@')
@@ -345,15 +363,40 @@ fn free_udp_port() -> Result<u16> {
 /// Kills the ground station when the config says so, and watches it: one that exits before
 /// the episode ended, other than cleanly (it exits 0 only after it has ended the mission with
 /// its drones), ends the episode (`Ending::GroundExited`).
-fn fly(sitl: &mut SitlWorld, targets: usize, ground: &mut Guard) -> Result<(Vec<World>, f64)> {
+fn fly(
+    sitl: &mut SitlWorld,
+    targets: usize,
+    ground: &mut Guard,
+    daemons: &mut [Guard],
+) -> Result<(Vec<World>, f64)> {
     let drones = sitl.world().herders.len();
     let mut watch = MissionWatch::new(drones, targets);
     let wall = Instant::now();
     let mut states: Vec<World> = vec![sitl.world().clone()];
     let mut kill_at = sitl.config().kill_ground_at;
+    let mut kill_daemon = sitl.config().kill_daemon;
     let mut ground_watched = true;
     loop {
         let mut report = sitl.tick()?;
+        if let Some((index, at)) = kill_daemon
+            && report.time_s + 1e-9 >= at
+            && let Some(child) = daemons.get_mut(index).and_then(Guard::child)
+        {
+            kill_daemon = None;
+            sitl.daemon_gone(index);
+            match child.kill() {
+                Ok(()) => say(format!(
+                    "t={:6.1}s fault: killing drone {}'s daemon (SIGKILL, pid {})",
+                    report.time_s,
+                    index + 1,
+                    child.id()
+                )),
+                Err(e) => say(format!(
+                    "fault: could not kill drone {}'s daemon: {e}",
+                    index + 1
+                )),
+            }
+        }
         if let Some(at) = kill_at
             && report.time_s + 1e-9 >= at
             && let Some(child) = ground.child()
