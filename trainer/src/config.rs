@@ -522,6 +522,12 @@ pub struct LoopConfig {
     /// environments cycle through them; evaluation keeps the scenarios of these tasks.
     #[serde(with = "task_list_serde")]
     pub tasks: Vec<Task>,
+    /// Random restarts: this many candidates, seeded apart, each trained for
+    /// `restart_trial_env_steps`; the best on the training-time evaluation goes on. Every
+    /// candidate's steps count towards `env_steps`. 1: off (`train::train_with_restarts`).
+    pub restart_candidates: usize,
+    /// Each restart candidate's trial, env steps.
+    pub restart_trial_env_steps: u64,
 }
 
 /// Serde for a list of tasks by name.
@@ -572,6 +578,8 @@ impl Default for LoopConfig {
             random_warmup_steps: 0,
             flight_rules: false,
             tasks: Task::ALL.to_vec(),
+            restart_candidates: 1,
+            restart_trial_env_steps: 0,
         }
     }
 }
@@ -720,6 +728,20 @@ impl TrainConfig {
             return bad(
                 "ddpg.critic_max_others",
                 "must be >= 1 with a centralised critic",
+            );
+        }
+        let t = &self.training;
+        if !(1..=16).contains(&t.restart_candidates) {
+            return bad("training.restart_candidates", "must be 1 (off) to 16");
+        }
+        if t.restart_candidates > 1
+            && (t.restart_trial_env_steps == 0
+                || (t.restart_candidates as u64).saturating_mul(t.restart_trial_env_steps)
+                    >= t.env_steps)
+        {
+            return bad(
+                "training.restart_trial_env_steps",
+                "must be above 0, and all the candidates' trials below training.env_steps",
             );
         }
         let g = &self.curriculum.driving_goal_distance;

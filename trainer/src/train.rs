@@ -317,6 +317,8 @@ struct Run<'a> {
     wall_offset: f64,
     eval_scenarios: Vec<EvalScenario>,
     last_eval: Vec<EvalRow>,
+    /// Pause the DDPG phase at this many env steps (a restart candidate's trial).
+    stop_at: Option<u64>,
 }
 
 impl Run<'_> {
@@ -508,7 +510,8 @@ impl Run<'_> {
         } else {
             0.0
         };
-        while self.progress.env_steps < t.env_steps && self.wall() < t.wall_clock_limit_s {
+        let limit = self.stop_at.map_or(t.env_steps, |s| s.min(t.env_steps));
+        while self.progress.env_steps < limit && self.wall() < t.wall_clock_limit_s {
             let controller = if self.progress.env_steps < t.random_warmup_steps {
                 Controller::RandomWaypoints
             } else {
@@ -629,6 +632,103 @@ fn train_in_pool(
     resume: Option<Checkpoint>,
     observer: &mut dyn Observer,
 ) -> Result<TrainOutcome, TrainError> {
+    if config.training.restart_candidates > 1 && resume.is_none() {
+        return train_with_restarts(config, observer);
+    }
+    let run = start_run(config, resume, observer)?;
+    finish_run(run, observer)
+}
+
+/// Random restarts (`training.restart_candidates`): whether an actor-critic run finds the
+/// behaviour that the reward pays for is often settled in its first tens of thousands of
+/// steps, by the seed. So `K` candidates, seeded apart, each train for
+/// `restart_trial_env_steps`; the one with the best held-out score (the training-time
+/// evaluation's seeds, never the reporting seeds) goes on, the others are dropped. Every
+/// candidate's steps count: the winner goes on to `env_steps - (K - 1) * trial`, so the run
+/// as a whole takes `env_steps`. Each candidate writes to `<output_dir>/candidate-<i>`, and
+/// `<output_dir>/restarts.json` records the trial scores and the winner.
+fn train_with_restarts(
+    config: &TrainConfig,
+    observer: &mut dyn Observer,
+) -> Result<TrainOutcome, TrainError> {
+    let t = &config.training;
+    let k = t.restart_candidates as u64;
+    let trial = t.restart_trial_env_steps;
+    let budget = t.env_steps - (k - 1) * trial;
+    let dir = config.output_dir.clone();
+    std::fs::create_dir_all(&dir).map_err(ReportError::from)?;
+    let candidates: Vec<TrainConfig> = (0..k)
+        .map(|i| {
+            let mut c = config.clone();
+            c.seed = config.seed.wrapping_add(i * 1_000_003);
+            c.training.env_steps = budget;
+            c.training.restart_candidates = 1;
+            c.output_dir = restart_candidate_dir(&dir, i as usize);
+            c
+        })
+        .collect();
+    let mut runs = Vec::with_capacity(candidates.len());
+    let mut scores = Vec::with_capacity(candidates.len());
+    for (i, candidate) in candidates.iter().enumerate() {
+        observer.note(&format!(
+            "restart candidate {i} (seed {}): {trial} env steps",
+            candidate.seed
+        ));
+        let mut run = start_run(candidate, None, observer)?;
+        run.stop_at = Some(trial);
+        run.ddpg(observer)?;
+        run.evaluate(observer)?;
+        run.save_last()?;
+        scores.push(score(&run.last_eval));
+        runs.push(run);
+    }
+    let winner = (1..scores.len()).fold(0, |best, i| {
+        if crate::eval::better(scores[i], scores[best]) {
+            i
+        } else {
+            best
+        }
+    });
+    let record = serde_json::json!({
+        "trial_env_steps": trial,
+        "winner": winner,
+        "winner_env_steps": budget,
+        "total_env_steps": t.env_steps,
+        "candidates": candidates.iter().zip(&scores).map(|(c, s)| serde_json::json!({
+            "seed": c.seed,
+            "success": s.0,
+            "time_ratio": s.1,
+        })).collect::<Vec<_>>(),
+    });
+    std::fs::write(
+        dir.join(RESTARTS_FILE),
+        serde_json::to_string_pretty(&record).unwrap_or_default(),
+    )
+    .map_err(ReportError::from)?;
+    observer.note(&format!(
+        "restarts: candidate {winner} goes on (trial scores {scores:?})"
+    ));
+    let mut run = runs.swap_remove(winner);
+    drop(runs);
+    run.stop_at = None;
+    finish_run(run, observer)
+}
+
+/// Where restart candidate `i` of the run in `dir` writes.
+pub fn restart_candidate_dir(dir: &std::path::Path, i: usize) -> PathBuf {
+    dir.join(format!("candidate-{i}"))
+}
+
+/// The record of a run's restarts, in its output folder.
+pub const RESTARTS_FILE: &str = "restarts.json";
+
+/// A run ready for its DDPG phase: networks fresh (or resumed), buffers empty, the warm start
+/// done if configured.
+fn start_run<'a>(
+    config: &'a TrainConfig,
+    resume: Option<Checkpoint>,
+    observer: &mut dyn Observer,
+) -> Result<Run<'a>, TrainError> {
     let dir = config.output_dir.clone();
     std::fs::create_dir_all(&dir).map_err(ReportError::from)?;
     let mut init_rng = ChaCha8Rng::seed_from_u64(config.seed);
@@ -710,6 +810,7 @@ fn train_in_pool(
         wall_offset: progress.wall_time_s,
         eval_scenarios,
         last_eval: Vec::new(),
+        stop_at: None,
     };
     if config.warm_start.enabled && !run.progress.warm_start_done {
         run.warm_start(observer)?;
@@ -718,6 +819,14 @@ fn train_in_pool(
         observer.note("resume: re-recording demonstrations for the imitation term");
         run.record_demonstrations(observer)?;
     }
+    Ok(run)
+}
+
+/// The DDPG phase to its end, the last evaluation and checkpoint, the evolution stage if
+/// configured.
+fn finish_run(mut run: Run<'_>, observer: &mut dyn Observer) -> Result<TrainOutcome, TrainError> {
+    let config = run.config;
+    let dir = config.output_dir.clone();
     let seconds_per_update = run.ddpg(observer)?;
     run.evaluate(observer)?;
     run.save_last()?;

@@ -318,3 +318,53 @@ fn a_centralised_fine_tune_starts_from_its_actor_and_learns_the_critic_first() {
     assert!(err.to_string().contains("inputs"), "{err}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// Random restarts: two candidates seeded apart train for their trial, the better one on the
+/// training-time evaluation goes on, and the steps of both count towards the run's budget.
+#[test]
+fn restarts_try_candidates_and_continue_the_best_within_the_budget() {
+    let dir = std::env::temp_dir().join(format!("skyherd-restarts-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let mut config = tiny_config(&dir);
+    config.warm_start.enabled = false;
+    config.evolution.enabled = false;
+    config.training.env_steps = 600;
+    config.training.restart_candidates = 2;
+    config.training.restart_trial_env_steps = 200;
+    config.validate().expect("a valid restarts config");
+    let outcome = train(&config, None, &mut Quiet).expect("training runs");
+    let record: serde_json::Value = serde_json::from_str(
+        &std::fs::read_to_string(dir.join("restarts.json")).expect("restarts.json"),
+    )
+    .expect("JSON");
+    let winner = record["winner"].as_u64().expect("a winner") as usize;
+    assert!(winner < 2);
+    assert_eq!(record["candidates"].as_array().map(Vec::len), Some(2));
+    assert_ne!(
+        record["candidates"][0]["seed"],
+        record["candidates"][1]["seed"]
+    );
+    // The winner's own steps: the budget less the loser's trial.
+    assert_eq!(record["winner_env_steps"], 400);
+    assert!(outcome.progress.env_steps >= 400, "{:?}", outcome.progress);
+    assert!(outcome.progress.env_steps < 600, "{:?}", outcome.progress);
+    for i in 0..2 {
+        let candidate = dir.join(format!("candidate-{i}"));
+        assert!(candidate.join("last.safetensors").exists(), "candidate {i}");
+        let c = checkpoint::load(&candidate.join("last.safetensors")).expect("checkpoint");
+        if i == winner {
+            assert!(c.progress.env_steps >= 400);
+        } else {
+            assert!(
+                (200..400).contains(&c.progress.env_steps),
+                "{:?}",
+                c.progress
+            );
+        }
+    }
+    // More trial than budget is refused, naming the field.
+    config.training.restart_trial_env_steps = 300;
+    let err = config.validate().expect_err("refused").to_string();
+    assert!(err.contains("restart_trial_env_steps"), "{err}");
+    std::fs::remove_dir_all(&dir).ok();
+}

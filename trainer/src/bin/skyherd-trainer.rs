@@ -366,7 +366,37 @@ fn run_train(args: TrainArgs) -> Result<()> {
         seed,
         arm,
     } = args;
-    let config = ablation_config(TrainConfig::load(&config)?, seed, arm)?;
+    let mut config = ablation_config(TrainConfig::load(&config)?, seed, arm)?;
+    if resume && config.training.restart_candidates > 1 {
+        // The trials are over once restarts.json exists: the winner's run goes on from its
+        // own folder, as a run of its own.
+        let record = config
+            .output_dir
+            .join(skyherd_trainer::train::RESTARTS_FILE);
+        let text = std::fs::read_to_string(&record).with_context(|| {
+            format!(
+                "resuming a run with restarts needs {} (the candidates' trials had not finished: start the run afresh, without --resume)",
+                record.display()
+            )
+        })?;
+        let r: serde_json::Value = serde_json::from_str(&text)
+            .with_context(|| format!("{} is not JSON", record.display()))?;
+        let (Some(winner), Some(seed), Some(steps)) = (
+            r["winner"].as_u64(),
+            r["candidates"][r["winner"].as_u64().unwrap_or(0) as usize]["seed"].as_u64(),
+            r["winner_env_steps"].as_u64(),
+        ) else {
+            bail!(
+                "{} lacks the winner, its seed or its env steps",
+                record.display()
+            );
+        };
+        config.seed = seed;
+        config.training.env_steps = steps;
+        config.training.restart_candidates = 1;
+        config.output_dir =
+            skyherd_trainer::train::restart_candidate_dir(&config.output_dir, winner as usize);
+    }
     let resume_from = if resume {
         let path = config.output_dir.join("last.safetensors");
         let c =
