@@ -39,7 +39,7 @@ struct Cli {
 #[derive(Subcommand, Debug)]
 enum Command {
     /// Run one mission: track, uplink, start, watch, finish; prints a JSON summary.
-    Mission(MissionArgs),
+    Mission(Box<MissionArgs>),
     /// Make signing keys from the operating system's randomness: `drone-ID.key` for each
     /// drone (shared by the ground and that drone only) and, with --fleet, `fleet.key` (the
     /// autopilots' and the sensor's link). Files are created 0600 and never overwritten.
@@ -192,7 +192,7 @@ fn keygen(args: &KeygenArgs) -> Result<()> {
 
 fn main() -> Result<()> {
     let args = match Cli::parse().command {
-        Command::Mission(args) => args,
+        Command::Mission(args) => *args,
         Command::Keygen(args) => return keygen(&args),
     };
     let mut station = GroundStation::new(args.station_config()?)?;

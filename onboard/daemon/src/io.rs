@@ -519,9 +519,7 @@ fn open_link(link: &'static str, address: &str) -> Result<(Link, Option<SocketAd
 
 /// Opens the ground link: UDP as a plain socket read by [`spawn_datagram_reader`], anything
 /// else through the `mavlink` crate.
-fn open_ground(
-    address: &str,
-) -> Result<(GroundLink, Option<SocketAddr>, Option<Arc<Link>>), IoError> {
+fn open_ground(address: &str) -> Result<(GroundLink, Option<SocketAddr>), IoError> {
     let err = |source| IoError::Connect {
         link: "ground",
         address: address.to_string(),
@@ -535,12 +533,11 @@ fn open_ground(
         (socket, true)
     } else {
         let (link, local) = open_link("ground", address)?;
-        let link = Arc::new(link);
-        return Ok((GroundLink::Other(link.clone()), local, Some(link)));
+        return Ok((GroundLink::Other(Arc::new(link)), local));
     };
     socket.set_read_timeout(Some(READ_TIMEOUT)).map_err(err)?;
     let local = socket.local_addr().map_err(err)?;
-    Ok((GroundLink::Udp { socket, connected }, Some(local), None))
+    Ok((GroundLink::Udp { socket, connected }, Some(local)))
 }
 
 /// Reads the ground's UDP socket until `stop`: every frame of every datagram, with its sender.
@@ -569,18 +566,13 @@ fn spawn_datagram_reader(socket: UdpSocket, events: Sender<Event>, stop: Arc<Ato
             };
             let mut reader = MavlinkReader::new(&buffer[..len]);
             let mut frames = 0;
-            loop {
-                match reader.read_any_raw_message::<MavMessage>() {
-                    Ok(raw) => {
-                        frames += 1;
-                        if events
-                            .send(Event::Ground(Box::new(raw), Some(from)))
-                            .is_err()
-                        {
-                            return;
-                        }
-                    }
-                    Err(_) => break,
+            while let Ok(raw) = reader.read_any_raw_message::<MavMessage>() {
+                frames += 1;
+                if events
+                    .send(Event::Ground(Box::new(raw), Some(from)))
+                    .is_err()
+                {
+                    return;
                 }
             }
             if frames == 0 && events.send(Event::GroundMalformed).is_err() {
@@ -694,7 +686,7 @@ impl<P: OnboardPolicy> Daemon<P> {
                 1,
             )));
         }
-        let (ground, ground_local, ground_mavlink) = open_ground(&options.ground)?;
+        let (ground, ground_local) = open_ground(&options.ground)?;
         let autopilot = Arc::new(autopilot);
         let stop = Arc::new(AtomicBool::new(false));
         let (tx, rx) = mpsc::channel();
@@ -705,8 +697,8 @@ impl<P: OnboardPolicy> Daemon<P> {
             tx.clone(),
             stop.clone(),
         );
-        match (&ground, ground_mavlink) {
-            (GroundLink::Udp { socket, .. }, _) => {
+        match &ground {
+            GroundLink::Udp { socket, .. } => {
                 let reader = socket.try_clone().map_err(|source| IoError::Connect {
                     link: "ground",
                     address: options.ground.clone(),
@@ -714,10 +706,7 @@ impl<P: OnboardPolicy> Daemon<P> {
                 })?;
                 spawn_datagram_reader(reader, tx, stop.clone());
             }
-            (GroundLink::Other(_), Some(link)) => {
-                spawn_reader("ground", link, true, tx, stop.clone());
-            }
-            (GroundLink::Other(_), None) => {}
+            GroundLink::Other(link) => spawn_reader("ground", link.clone(), true, tx, stop.clone()),
         }
         if options.signing_key.is_none() {
             warn!("no signing key: uplink frames are accepted unauthenticated");
@@ -1279,7 +1268,7 @@ mod tests {
     fn every_empty_datagram_is_counted_as_malformed_and_the_next_frame_still_arrives() {
         // The reader once slept 20 ms on each empty datagram without counting it: a flood of
         // them slowed the uplink to 50 frames a second, unseen.
-        let (link, local, _) = open_ground("udpin:127.0.0.1:0").expect("a loopback link");
+        let (link, local) = open_ground("udpin:127.0.0.1:0").expect("a loopback link");
         let local = local.expect("a UDP link has an address");
         let (events, heard) = mpsc::channel();
         let stop = Arc::new(AtomicBool::new(false));
