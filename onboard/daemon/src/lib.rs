@@ -39,6 +39,8 @@
 //!     autopilot: "udpout:127.0.0.1:14541".into(),
 //!     ground: "udpin:127.0.0.1:0".into(), // port 0: pick one, read it back below
 //!     signing_key: Some([0x42; 32]),
+//!     autopilot_key: None,  // or the key the autopilot verifies
+//!     replay_state: None,   // or a file, so that a restart keeps refusing old frames
 //!     clock: ClockMode::Simulator,
 //! };
 //! let mut daemon = Daemon::connect(&options, core).unwrap();
