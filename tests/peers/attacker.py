@@ -66,13 +66,19 @@ def udp():
     return s
 
 
+def parser(key=None):
+    """A MAVLink 2 parser that verifies signatures under `key` when one is given."""
+    p = mavlink2.MAVLink(None)
+    p.robust_parsing = True
+    if key is not None:
+        p.signing.secret_key = key
+    return p
+
+
 def drain(sock, seconds, key=None):
     """Datagrams received within `seconds`, and the HEARTBEATs among them (verified when a key
     is given)."""
-    parser = mavlink2.MAVLink(None)
-    parser.robust_parsing = True
-    if key is not None:
-        parser.signing.secret_key = key
+    parser_ = parser(key)
     datagrams, heartbeats = 0, 0
     end = time.time() + seconds
     while time.time() < end:
@@ -81,7 +87,7 @@ def drain(sock, seconds, key=None):
         except socket.timeout:
             continue
         datagrams += 1
-        for msg in parser.parse_buffer(data) or []:
+        for msg in parser_.parse_buffer(data) or []:
             if msg.get_type() == "HEARTBEAT":
                 heartbeats += 1
     return datagrams, heartbeats
@@ -202,10 +208,7 @@ def cmd_disarm(a):
 
 
 def count_acks(sock, seconds, key=None):
-    parser = mavlink2.MAVLink(None)
-    parser.robust_parsing = True
-    if key is not None:
-        parser.signing.secret_key = key
+    parser_ = parser(key)
     acks = []
     end = time.time() + seconds
     while time.time() < end:
@@ -213,7 +216,7 @@ def count_acks(sock, seconds, key=None):
             data, _ = sock.recvfrom(4096)
         except socket.timeout:
             continue
-        for msg in parser.parse_buffer(data) or []:
+        for msg in parser_.parse_buffer(data) or []:
             if msg.get_type() == "COMMAND_ACK":
                 acks.append(msg.result)
     return acks
