@@ -395,6 +395,26 @@ fn a_killed_ground_fails_the_mission_and_the_drones_land_on_their_own() {
         .map(|d| column(&format!("d{d}_z")))
         .fold(0.0_f64, f64::max);
 
+    // The .tlog: whole records (a big-endian microsecond stamp, then one MAVLink 2 frame) to
+    // its last byte, the last stamped within a second and a bit of the kill.
+    let tlog = std::fs::read(run.out.join("ground.tlog")).expect("ground.tlog");
+    let (mut at, mut stamps) = (0, Vec::new());
+    while at + 8 + 12 <= tlog.len() {
+        let stamp = u64::from_be_bytes(tlog[at..at + 8].try_into().expect("8 bytes"));
+        let frame = &tlog[at + 8..];
+        assert_eq!(frame[0], 0xFD, "record at byte {at} is not a MAVLink 2 frame");
+        let signature = if frame[2] & 1 == 1 { 13 } else { 0 };
+        at += 8 + 12 + usize::from(frame[1]) + signature;
+        stamps.push(stamp);
+    }
+    assert_eq!(at, tlog.len(), "the .tlog ends inside a record");
+    let span_s = (stamps[stamps.len() - 1] - stamps[0]) as f64 / 1e6;
+    assert!(
+        (KILL_AT - 1.5..=KILL_AT).contains(&span_s),
+        "the .tlog spans {span_s} s of {} records, the kill was at {KILL_AT} s",
+        stamps.len()
+    );
+
     // Every drone landed on its own, not before land_after, within land_after + the descent.
     assert_eq!(r["drones_landed"], 2, "{r}");
     let mut last_touchdown = 0.0_f64;
