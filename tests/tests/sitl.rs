@@ -402,7 +402,10 @@ fn a_killed_ground_fails_the_mission_and_the_drones_land_on_their_own() {
     while at + 8 + 12 <= tlog.len() {
         let stamp = u64::from_be_bytes(tlog[at..at + 8].try_into().expect("8 bytes"));
         let frame = &tlog[at + 8..];
-        assert_eq!(frame[0], 0xFD, "record at byte {at} is not a MAVLink 2 frame");
+        assert_eq!(
+            frame[0], 0xFD,
+            "record at byte {at} is not a MAVLink 2 frame"
+        );
         let signature = if frame[2] & 1 == 1 { 13 } else { 0 };
         at += 8 + 12 + usize::from(frame[1]) + signature;
         stamps.push(stamp);

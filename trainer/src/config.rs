@@ -528,6 +528,19 @@ pub struct LoopConfig {
     pub restart_candidates: usize,
     /// Each restart candidate's trial, env steps.
     pub restart_trial_env_steps: u64,
+    /// How the restart candidates are ranked at the end of their trials.
+    pub restart_score: RestartScore,
+}
+
+/// How restart candidates are ranked ([`LoopConfig::restart_candidates`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum RestartScore {
+    /// Mean success over every evaluation scenario, then time (`eval::score`).
+    #[default]
+    Mean,
+    /// The weaker task's mean success, then time (`eval::weakest_task_score`).
+    WeakestTask,
 }
 
 /// Serde for a list of tasks by name.
@@ -580,6 +593,7 @@ impl Default for LoopConfig {
             tasks: Task::ALL.to_vec(),
             restart_candidates: 1,
             restart_trial_env_steps: 0,
+            restart_score: RestartScore::Mean,
         }
     }
 }

@@ -679,7 +679,12 @@ fn train_with_restarts(
         run.ddpg(observer)?;
         run.evaluate(observer)?;
         run.save_last()?;
-        scores.push(score(&run.last_eval));
+        scores.push(match t.restart_score {
+            crate::config::RestartScore::Mean => score(&run.last_eval),
+            crate::config::RestartScore::WeakestTask => {
+                crate::eval::weakest_task_score(&run.last_eval)
+            }
+        });
         runs.push(run);
     }
     let winner = (1..scores.len()).fold(0, |best, i| {
@@ -691,6 +696,7 @@ fn train_with_restarts(
     });
     let record = serde_json::json!({
         "trial_env_steps": trial,
+        "score": format!("{:?}", t.restart_score),
         "winner": winner,
         "winner_env_steps": budget,
         "total_env_steps": t.env_steps,
