@@ -261,9 +261,16 @@ fn a_forged_scan_never_drags_a_signed_grounds_clock() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// One mission at a time: each runs several processes in lockstep, and two at once on a 2-core
+/// machine would only measure the scheduler.
+static ONE_MISSION_AT_A_TIME: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
 /// One indoor mission through `skyherd-sitl` at `speed` times real time; `result.json` and
 /// the output folder.
 fn indoor(label: &str, speed: &str, flood: bool) -> (Value, Option<Value>) {
+    let _turn = ONE_MISSION_AT_A_TIME
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
     let out = scratch(label);
     binary("skyherd-ground");
     binary("skyherd-onboard");
@@ -312,7 +319,9 @@ fn indoor(label: &str, speed: &str, flood: bool) -> (Value, Option<Value>) {
 
 /// Row 3: 8,000 zero-byte datagrams to drone 1's uplink port during the indoor mission (in
 /// real time, so that the flood overlaps the whole flight) leave the mission as it was
-/// without them: success, and the same time to the goal.
+/// without them: success, and the time to the goal within 3 s of the calm run's (the issue's
+/// probe saw 29.3 s become 46.3 s). Paced by the wall clock the mission is not reproducible to
+/// the tick: on a loaded 2-core machine calm runs alone took 29.3-30.7 s.
 #[test]
 fn a_zero_byte_flood_does_not_change_the_indoor_mission() {
     let (calm, _) = indoor("calm", "1", false);
@@ -321,10 +330,15 @@ fn a_zero_byte_flood_does_not_change_the_indoor_mission() {
     assert_eq!(calm["success"], true, "{calm}");
     assert_eq!(flooded["success"], true, "{flooded}");
     let t = |r: &Value| r["mission_time_s"].as_f64().expect("a time");
-    eprintln!("indoor: {} s calm, {} s flooded", t(&calm), t(&flooded));
+    let misses = [&calm, &flooded].map(|r| r["lockstep_misses"].as_u64().unwrap_or(u64::MAX));
+    eprintln!(
+        "indoor: {} s calm, {} s flooded; lockstep misses {misses:?}",
+        t(&calm),
+        t(&flooded)
+    );
     assert!(
-        (t(&calm) - t(&flooded)).abs() <= 0.5,
-        "{} vs {}",
+        (t(&calm) - t(&flooded)).abs() <= 3.0,
+        "{} vs {} (misses {misses:?})",
         t(&calm),
         t(&flooded)
     );
@@ -335,6 +349,9 @@ fn a_zero_byte_flood_does_not_change_the_indoor_mission() {
 /// drone goes on with the mission.
 #[test]
 fn a_killed_daemon_is_a_lost_drone() {
+    let _turn = ONE_MISSION_AT_A_TIME
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner);
     let out = scratch("killed-daemon");
     binary("skyherd-ground");
     binary("skyherd-onboard");
