@@ -156,10 +156,14 @@ pub fn score(rows: &[EvalRow]) -> (f64, f64) {
 }
 
 /// A score that ranks by the weaker task: the smallest over the tasks present of that task's
-/// mean success, then [`score`]'s time. A candidate that drives well and cannot collect (or the
-/// reverse) ranks below one that does a little of both.
+/// mean success, then (lower is better, as [`better`] reads it) one minus the mean success over
+/// every scenario. A candidate that drives well and cannot collect (or the reverse) ranks below
+/// one that does a little of both, and among candidates that all fail one task the one that
+/// does most of the other goes on. Time plays no part: [`score`]'s counts an unsolved scenario
+/// at 20x the lower bound, so a slow success (over 20x, as early ones are) would rank below no
+/// success at all (probe seed 25 lost its only driving candidate to that).
 pub fn weakest_task_score(rows: &[EvalRow]) -> (f64, f64) {
-    let (_, time) = score(rows);
+    let (mean, _) = score(rows);
     let weakest = [Task::Driving, Task::Collecting]
         .iter()
         .filter_map(|&task| {
@@ -171,7 +175,7 @@ pub fn weakest_task_score(rows: &[EvalRow]) -> (f64, f64) {
             (!mine.is_empty()).then(|| mine.iter().sum::<f64>() / mine.len() as f64)
         })
         .fold(f64::INFINITY, f64::min);
-    (if weakest.is_finite() { weakest } else { 0.0 }, time)
+    (if weakest.is_finite() { weakest } else { 0.0 }, 1.0 - mean)
 }
 
 /// Whether score `a` beats score `b`: more success, or equal success (within half an episode
@@ -270,5 +274,19 @@ mod tests {
         // One task only: its own mean.
         assert_eq!(weakest_task_score(&driver[..1]).0, 0.54);
         assert_eq!(weakest_task_score(&[]).0, 0.0);
+        // Probe seed 25's trial: every candidate failed collecting; the one that drove 38 %
+        // (slowly: over 20x the lower bound) must beat those that did nothing.
+        let slow_driver = [
+            EvalRow {
+                mean_time_ratio: 20.4,
+                ..row(Task::Driving, 0.38)
+            },
+            row(Task::Collecting, 0.0),
+        ];
+        let idle = [row(Task::Driving, 0.0), row(Task::Collecting, 0.0)];
+        assert!(better(
+            weakest_task_score(&slow_driver),
+            weakest_task_score(&idle)
+        ));
     }
 }
