@@ -219,6 +219,61 @@ pub struct UplinkCounters {
     pub not_for_us: u64,
     /// TUNNEL chunks handed to the core.
     pub tunnel_chunks: u64,
+    /// Dropped unchecked: the sender had already had [`REJECTS_PER_SENDER`] frames refused
+    /// this second.
+    pub rate_limited: u64,
+}
+
+/// Refused frames a sender may cost the daemon a second (a signature check each) before the
+/// rest of its frames that second are dropped unchecked. Counted only on refusals, so the
+/// ground, whose frames pass, is never limited however fast a simulation drives it.
+pub const REJECTS_PER_SENDER: u32 = 100;
+/// Senders tracked at once; past this, new senders share one budget.
+const TRACKED_SENDERS: usize = 256;
+
+/// Per-sender budget of refused frames, renewed every second. Pure: the caller passes the
+/// time in.
+#[derive(Debug, Default)]
+pub struct RejectBudget {
+    window_start: Option<Instant>,
+    refused: std::collections::HashMap<Option<SocketAddr>, u32>,
+}
+
+impl RejectBudget {
+    fn key(&self, from: Option<SocketAddr>) -> Option<SocketAddr> {
+        if from.is_some()
+            && !self.refused.contains_key(&from)
+            && self.refused.len() >= TRACKED_SENDERS
+        {
+            None
+        } else {
+            from
+        }
+    }
+
+    fn roll(&mut self, now: Instant) {
+        match self.window_start {
+            Some(start) if now.duration_since(start) < Duration::from_secs(1) => {}
+            _ => {
+                self.window_start = Some(now);
+                self.refused.clear();
+            }
+        }
+    }
+
+    /// Whether a frame from `from` at `now` should still be checked.
+    pub fn allows(&mut self, from: Option<SocketAddr>, now: Instant) -> bool {
+        self.roll(now);
+        let key = self.key(from);
+        self.refused.get(&key).copied().unwrap_or(0) < REJECTS_PER_SENDER
+    }
+
+    /// A frame from `from` was refused.
+    pub fn refused(&mut self, from: Option<SocketAddr>, now: Instant) {
+        self.roll(now);
+        let key = self.key(from);
+        *self.refused.entry(key).or_insert(0) += 1;
+    }
 }
 
 /// Checks ground frames: signature and replay state first, then that the payload parses.
@@ -458,6 +513,8 @@ pub struct Daemon<P> {
     ground: GroundLink,
     /// Where the last authenticated ground frame came from: the only address answered.
     ground_peer: Option<SocketAddr>,
+    /// Refused frames per sender this second.
+    rejects: RejectBudget,
     replay_state: Option<std::path::PathBuf>,
     ground_local: Option<SocketAddr>,
     autopilot_local: Option<SocketAddr>,
@@ -723,6 +780,7 @@ impl<P: OnboardPolicy> Daemon<P> {
             autopilot,
             ground,
             ground_peer: None,
+            rejects: RejectBudget::default(),
             replay_state: options.replay_state.clone(),
             ground_local,
             autopilot_local,
@@ -960,6 +1018,11 @@ impl<P: OnboardPolicy> Daemon<P> {
     }
 
     fn handle_ground(&mut self, now: Millis, raw: &MAVLinkMessageRaw, from: Option<SocketAddr>) {
+        let wall = Instant::now();
+        if !self.rejects.allows(from, wall) {
+            self.gate.counters.rate_limited += 1;
+            return;
+        }
         let (header, message) = match self.gate.accept(raw, SigningTime::now()) {
             Ok(accepted) => {
                 // Only an authenticated frame tells where the ground is.
@@ -969,6 +1032,7 @@ impl<P: OnboardPolicy> Daemon<P> {
                 accepted
             }
             Err(why) => {
+                self.rejects.refused(from, wall);
                 debug!(
                     "uplink frame from system {} dropped: {why:?}",
                     raw.system_id()
@@ -1212,6 +1276,33 @@ mod tests {
             gate.accept(&frame, now()).err(),
             Some(UplinkRejection::Replayed)
         );
+    }
+
+    #[test]
+    fn a_sender_that_keeps_failing_is_dropped_unchecked_and_the_ground_never_is() {
+        let attacker: SocketAddr = "127.0.0.1:4000".parse().expect("addr");
+        let ground: SocketAddr = "127.0.0.1:5000".parse().expect("addr");
+        let t0 = Instant::now();
+        let mut budget = RejectBudget::default();
+        let mut checked = 0;
+        for _ in 0..300 {
+            if budget.allows(Some(attacker), t0) {
+                checked += 1;
+                budget.refused(Some(attacker), t0);
+            }
+        }
+        assert_eq!(checked, REJECTS_PER_SENDER);
+        // Frames that pass are never counted: the ground is checked however many it sends.
+        assert!((0..10_000).all(|_| budget.allows(Some(ground), t0)));
+        // A second later the budget is renewed.
+        assert!(budget.allows(Some(attacker), t0 + Duration::from_millis(1001)));
+        // Past the tracked senders, new ones share one budget rather than growing the map.
+        let mut crowd = RejectBudget::default();
+        for port in 0..(TRACKED_SENDERS as u16 + 50) {
+            let from = Some(SocketAddr::from(([127, 0, 0, 1], 10_000 + port)));
+            crowd.refused(from, t0);
+        }
+        assert!(crowd.refused.len() <= TRACKED_SENDERS + 1);
     }
 
     #[test]
