@@ -265,33 +265,37 @@ fn a_forged_scan_never_drags_a_signed_grounds_clock() {
 /// machine would only measure the scheduler.
 static ONE_MISSION_AT_A_TIME: std::sync::Mutex<()> = std::sync::Mutex::new(());
 
-/// One indoor mission through `skyherd-sitl` at `speed` times real time; `result.json` and
-/// the output folder.
-fn indoor(label: &str, speed: &str, flood: bool) -> (Value, Option<Value>) {
+/// What one mission left: `result.json`, the console, and the attacker's report if it ran.
+struct Mission {
+    result: Value,
+    console: String,
+    flood: Option<Value>,
+}
+
+/// One indoor mission (seed 0) through `skyherd-sitl` with `extra` flags, flooded by the
+/// attacker when `flood` is set.
+fn indoor(label: &str, extra: &[&str], flood: bool) -> Mission {
     let _turn = ONE_MISSION_AT_A_TIME
         .lock()
         .unwrap_or_else(std::sync::PoisonError::into_inner);
     let out = scratch(label);
     binary("skyherd-ground");
     binary("skyherd-onboard");
+    // The console goes to a file beside the output folder: a pipe nobody reads could fill.
+    let console = out.with_extension("console");
     let child = Command::new(binary("skyherd-sitl"))
         .current_dir(repo())
-        .args([
-            "--model",
-            "models/mtddpg-v3.skym",
-            "--scenario",
-            "indoor",
-            "--seed",
-            "0",
-        ])
-        .args(["--speed", speed, "--out"])
+        .args(["--model", "models/mtddpg-v3.skym", "--scenario", "indoor"])
+        .args(["--seed", "0"])
+        .args(extra)
+        .arg("--out")
         .arg(&out)
         .stdout(Stdio::null())
-        .stderr(Stdio::null())
+        .stderr(std::fs::File::create(&console).expect("console file"))
         .spawn()
         .expect("skyherd-sitl starts");
     let mut sitl = Killed(child);
-    let report = flood.then(|| {
+    let flood = flood.then(|| {
         let log = out.join("daemon-1.log").display().to_string();
         // 1,000 empty datagrams a second for 8 s, as the probe sent them.
         attack(&[
@@ -313,8 +317,14 @@ fn indoor(label: &str, speed: &str, flood: bool) -> (Value, Option<Value>) {
         std::thread::sleep(Duration::from_millis(50));
     }
     let result = std::fs::read_to_string(out.join("result.json")).expect("result.json");
+    let console_text = std::fs::read_to_string(&console).unwrap_or_default();
     std::fs::remove_dir_all(&out).ok();
-    (serde_json::from_str(&result).expect("JSON"), report)
+    std::fs::remove_file(&console).ok();
+    Mission {
+        result: serde_json::from_str(&result).expect("JSON"),
+        console: console_text,
+        flood,
+    }
 }
 
 /// Row 3: 8,000 zero-byte datagrams to drone 1's uplink port during the indoor mission (in
@@ -324,9 +334,10 @@ fn indoor(label: &str, speed: &str, flood: bool) -> (Value, Option<Value>) {
 /// the tick: on a loaded 2-core machine calm runs alone took 29.3-30.7 s.
 #[test]
 fn a_zero_byte_flood_does_not_change_the_indoor_mission() {
-    let (calm, _) = indoor("calm", "1", false);
-    let (flooded, report) = indoor("flooded", "1", true);
-    eprintln!("flood: {report:?}");
+    let calm = indoor("calm", &["--speed", "1"], false).result;
+    let flooded_run = indoor("flooded", &["--speed", "1"], true);
+    eprintln!("flood: {:?}", flooded_run.flood);
+    let flooded = flooded_run.result;
     assert_eq!(calm["success"], true, "{calm}");
     assert_eq!(flooded["success"], true, "{flooded}");
     let t = |r: &Value| r["mission_time_s"].as_f64().expect("a time");
@@ -349,37 +360,14 @@ fn a_zero_byte_flood_does_not_change_the_indoor_mission() {
 /// drone goes on with the mission.
 #[test]
 fn a_killed_daemon_is_a_lost_drone() {
-    let _turn = ONE_MISSION_AT_A_TIME
-        .lock()
-        .unwrap_or_else(std::sync::PoisonError::into_inner);
-    let out = scratch("killed-daemon");
-    binary("skyherd-ground");
-    binary("skyherd-onboard");
-    let output = Command::new(binary("skyherd-sitl"))
-        .current_dir(repo())
-        .args([
-            "--model",
-            "models/mtddpg-v3.skym",
-            "--scenario",
-            "indoor",
-            "--seed",
-            "0",
-        ])
-        .args(["--kill-daemon", "0@10", "--out"])
-        .arg(&out)
-        .output()
-        .expect("skyherd-sitl runs");
-    let stderr = String::from_utf8_lossy(&output.stderr);
-    assert!(stderr.contains("killing drone 1's daemon"), "{stderr}");
-    let result: Value = serde_json::from_str(
-        &std::fs::read_to_string(out.join("result.json")).expect("result.json"),
-    )
-    .expect("JSON");
+    let Mission {
+        result, console, ..
+    } = indoor("killed-daemon", &["--kill-daemon", "0@10"], false);
+    assert!(console.contains("killing drone 1's daemon"), "{console}");
     assert_eq!(
         result["ground"]["lost_drones"],
         serde_json::json!([1]),
         "{result}"
     );
     assert_ne!(result["ground"]["outcome"], "aborted", "{result}");
-    std::fs::remove_dir_all(&out).ok();
 }

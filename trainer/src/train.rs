@@ -654,7 +654,8 @@ fn train_with_restarts(
     let t = &config.training;
     let k = t.restart_candidates as u64;
     let trial = t.restart_trial_env_steps;
-    let budget = t.env_steps - (k - 1) * trial;
+    // `TrainConfig::validate` keeps every trial inside the budget; saturating all the same.
+    let budget = t.env_steps.saturating_sub((k - 1).saturating_mul(trial));
     let dir = config.output_dir.clone();
     std::fs::create_dir_all(&dir).map_err(ReportError::from)?;
     let candidates: Vec<TrainConfig> = (0..k)

@@ -423,6 +423,17 @@ mod tests {
     }
 
     #[test]
+    fn keys_parse_from_raw_or_hex_and_anything_else_is_refused() {
+        const KEY: [u8; 32] = [9; 32];
+        assert_eq!(SigningKey::parse(&KEY), Some(SigningKey(KEY)));
+        let hex = format!("{}\n", "09".repeat(32));
+        assert_eq!(SigningKey::parse(hex.as_bytes()), Some(SigningKey(KEY)));
+        for bad in [&b""[..], &[0u8; 31], &[0u8; 33], "zz".repeat(32).as_bytes()] {
+            assert_eq!(SigningKey::parse(bad), None);
+        }
+    }
+
+    #[test]
     fn key_file_raw_and_hex() {
         let dir = std::env::temp_dir().join(format!("skyherd-key-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();

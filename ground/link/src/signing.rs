@@ -69,6 +69,32 @@ pub enum KeyFileError {
 const MAX_KEY_FILE_BYTES: u64 = 4096;
 
 impl SigningKey {
+    /// A key from a key file's bytes: exactly 32 raw bytes, or 64 hex digits (whitespace
+    /// around ignored); `None` for anything else.
+    ///
+    /// ```
+    /// use skyherd_link::SigningKey;
+    /// assert_eq!(SigningKey::parse(&[7u8; 32]), Some(SigningKey([7; 32])));
+    /// assert_eq!(SigningKey::parse("ab".repeat(32).as_bytes()), Some(SigningKey([0xab; 32])));
+    /// assert_eq!(SigningKey::parse(b"too short"), None);
+    /// ```
+    pub fn parse(bytes: &[u8]) -> Option<Self> {
+        if let Ok(key) = <[u8; KEY_LEN]>::try_from(bytes) {
+            return Some(Self(key));
+        }
+        let hex = bytes.trim_ascii();
+        if hex.len() != 2 * KEY_LEN {
+            return None;
+        }
+        let nibble = |c: u8| char::from(c).to_digit(16);
+        let mut key = [0u8; KEY_LEN];
+        for (k, pair) in key.iter_mut().zip(hex.chunks_exact(2)) {
+            // Two hex digits: at most 255.
+            *k = (nibble(pair[0])? * 16 + nibble(pair[1])?) as u8;
+        }
+        Some(Self(key))
+    }
+
     /// A fresh key from the operating system's randomness.
     ///
     /// # Errors
@@ -143,21 +169,12 @@ impl SigningKey {
                 len: bytes.len(),
             });
         }
-        if let Ok(key) = <[u8; 32]>::try_from(bytes.as_slice()) {
-            return Ok(Self(key));
-        }
-        let text = String::from_utf8_lossy(&bytes);
-        let hex = text.trim();
-        if hex.len() == 64 && hex.bytes().all(|b| b.is_ascii_hexdigit()) {
-            let mut key = [0u8; 32];
-            for (i, k) in key.iter_mut().enumerate() {
-                *k = u8::from_str_radix(&hex[2 * i..2 * i + 2], 16).unwrap_or(0);
-            }
-            return Ok(Self(key));
+        if let Some(key) = Self::parse(&bytes) {
+            return Ok(key);
         }
         Err(KeyFileError::BadLength {
             path: name,
-            len: hex.len(),
+            len: bytes.trim_ascii().len(),
         })
     }
 }

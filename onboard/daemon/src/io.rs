@@ -51,7 +51,7 @@ pub const HEARTBEAT_PERIOD: Duration = Duration::from_millis(1000);
 /// Slowest control rate accepted, Hz: PX4 leaves OFFBOARD when setpoints come slower than 2 Hz.
 pub const MIN_RATE_HZ: f32 = 2.0;
 /// Length of a MAVLink 2 signing key.
-pub const KEY_LEN: usize = 32;
+pub use skyherd_link::signing::KEY_LEN;
 
 type Link = mavlink::Connection<MavMessage>;
 
@@ -105,8 +105,6 @@ pub enum IoError {
         /// Why.
         source: io::Error,
     },
-    /// The key file is not a 32-byte key.
-    BadKey(String),
     /// The replay state file cannot be read or is not one.
     ReplayState {
         /// The file.
@@ -128,7 +126,6 @@ impl fmt::Display for IoError {
                 address,
                 source,
             } => write!(f, "cannot open the {link} link {address:?}: {source}"),
-            IoError::BadKey(why) => write!(f, "bad signing key: {why}"),
             IoError::ReplayState { path, why } => {
                 write!(f, "replay state file {path}: {why}")
             }
@@ -150,38 +147,6 @@ impl std::error::Error for IoError {
             _ => None,
         }
     }
-}
-
-/// Parses a signing key: exactly 32 raw bytes, or 64 hex digits (surrounding whitespace
-/// ignored).
-///
-/// ```
-/// use skyherd_daemon::io::parse_key;
-/// assert_eq!(parse_key(&[7u8; 32]).unwrap(), [7u8; 32]);
-/// assert_eq!(parse_key("ab".repeat(32).as_bytes()).unwrap(), [0xab; 32]);
-/// assert!(parse_key(b"too short").is_err());
-/// ```
-pub fn parse_key(bytes: &[u8]) -> Result<[u8; KEY_LEN], IoError> {
-    if let Ok(raw) = <[u8; KEY_LEN]>::try_from(bytes) {
-        return Ok(raw);
-    }
-    let bad = || {
-        IoError::BadKey(format!(
-            "{} bytes, expected 32 raw bytes or 64 hex digits",
-            bytes.len()
-        ))
-    };
-    let hex = bytes.trim_ascii();
-    if hex.len() != 2 * KEY_LEN {
-        return Err(bad());
-    }
-    let nibble = |c: u8| char::from(c).to_digit(16).ok_or_else(bad);
-    let mut key = [0u8; KEY_LEN];
-    for (k, pair) in key.iter_mut().zip(hex.chunks_exact(2)) {
-        // Two hex digits: at most 255.
-        *k = (nibble(pair[0])? * 16 + nibble(pair[1])?) as u8;
-    }
-    Ok(key)
 }
 
 /// Why an uplink frame was dropped.
@@ -503,7 +468,8 @@ enum GroundLink {
     Other(Arc<Link>),
 }
 
-/// Largest MAVLink 2 frame: 12 header and CRC bytes, 255 payload, 13 signature.
+/// The ground reader's buffer: eight of the largest MAVLink 2 frames (12 header and CRC
+/// bytes, 255 payload, 13 signature: 280 bytes each) in one datagram; more is cut off.
 const MAX_DATAGRAM: usize = 280 * 8;
 
 /// A running daemon: both links open, the core inside.
@@ -544,6 +510,39 @@ pub(crate) fn snapshot_is_behind(snapshot_ms: Option<u64>, now: Millis) -> bool 
     snapshot_ms.is_none_or(|ms| ms + 1 < now.0)
 }
 
+/// Binds a `udpin:`/`udpout:` address (an `udpout` socket connected to its peer), with the
+/// read timeout set: the socket, whether it is connected, and its local address. `None` for
+/// any other kind of address.
+fn bind_udp(
+    link: &'static str,
+    address: &str,
+) -> Option<Result<(UdpSocket, bool, SocketAddr), IoError>> {
+    let err = |source| IoError::Connect {
+        link,
+        address: address.to_string(),
+        source,
+    };
+    let bind = |target: &str, connected: bool| {
+        let socket = if connected {
+            let socket = UdpSocket::bind("0.0.0.0:0").map_err(err)?;
+            socket.connect(target).map_err(err)?;
+            socket
+        } else {
+            UdpSocket::bind(target).map_err(err)?
+        };
+        socket.set_read_timeout(Some(READ_TIMEOUT)).map_err(err)?;
+        let local = socket.local_addr().map_err(err)?;
+        Ok((socket, connected, local))
+    };
+    if let Some(target) = address.strip_prefix("udpin:") {
+        Some(bind(target, false))
+    } else {
+        address
+            .strip_prefix("udpout:")
+            .map(|target| bind(target, true))
+    }
+}
+
 /// Opens a link. UDP addresses are bound here (rather than inside `mavlink::connect`) so that
 /// the bound address is known (`udpin:127.0.0.1:0` picks a free port) and reads time out.
 fn open_link(link: &'static str, address: &str) -> Result<(Link, Option<SocketAddr>), IoError> {
@@ -552,49 +551,40 @@ fn open_link(link: &'static str, address: &str) -> Result<(Link, Option<SocketAd
         address: address.to_string(),
         source,
     };
-    let udp = |mode, socket: UdpSocket| -> Result<(Link, Option<SocketAddr>), IoError> {
-        socket.set_read_timeout(Some(READ_TIMEOUT)).map_err(err)?;
-        let local = socket.local_addr().map_err(err)?;
-        let link = UdpConfig::from_socket(socket, mode)
-            .map_err(err)?
-            .connect::<MavMessage>()
-            .map_err(err)?;
-        Ok((link, Some(local)))
-    };
-    if let Some(target) = address.strip_prefix("udpin:") {
-        let socket = UdpSocket::bind(target).map_err(err)?;
-        udp(UdpMode::Udpin, socket)
-    } else if let Some(target) = address.strip_prefix("udpout:") {
-        let socket = UdpSocket::bind("0.0.0.0:0").map_err(err)?;
-        socket.connect(target).map_err(err)?;
-        udp(UdpMode::Udpout, socket)
-    } else {
-        let link = mavlink::connect::<MavMessage>(address).map_err(err)?;
-        Ok((link, None))
+    match bind_udp(link, address) {
+        Some(bound) => {
+            let (socket, connected, local) = bound?;
+            let mode = if connected {
+                UdpMode::Udpout
+            } else {
+                UdpMode::Udpin
+            };
+            let link = UdpConfig::from_socket(socket, mode)
+                .map_err(err)?
+                .connect::<MavMessage>()
+                .map_err(err)?;
+            Ok((link, Some(local)))
+        }
+        None => {
+            let link = mavlink::connect::<MavMessage>(address).map_err(err)?;
+            Ok((link, None))
+        }
     }
 }
 
 /// Opens the ground link: UDP as a plain socket read by [`spawn_datagram_reader`], anything
 /// else through the `mavlink` crate.
 fn open_ground(address: &str) -> Result<(GroundLink, Option<SocketAddr>), IoError> {
-    let err = |source| IoError::Connect {
-        link: "ground",
-        address: address.to_string(),
-        source,
-    };
-    let (socket, connected) = if let Some(target) = address.strip_prefix("udpin:") {
-        (UdpSocket::bind(target).map_err(err)?, false)
-    } else if let Some(target) = address.strip_prefix("udpout:") {
-        let socket = UdpSocket::bind("0.0.0.0:0").map_err(err)?;
-        socket.connect(target).map_err(err)?;
-        (socket, true)
-    } else {
-        let (link, local) = open_link("ground", address)?;
-        return Ok((GroundLink::Other(Arc::new(link)), local));
-    };
-    socket.set_read_timeout(Some(READ_TIMEOUT)).map_err(err)?;
-    let local = socket.local_addr().map_err(err)?;
-    Ok((GroundLink::Udp { socket, connected }, Some(local)))
+    match bind_udp("ground", address) {
+        Some(bound) => {
+            let (socket, connected, local) = bound?;
+            Ok((GroundLink::Udp { socket, connected }, Some(local)))
+        }
+        None => {
+            let (link, local) = open_link("ground", address)?;
+            Ok((GroundLink::Other(Arc::new(link)), local))
+        }
+    }
 }
 
 /// Reads the ground's UDP socket until `stop`: every frame of every datagram, with its sender.
@@ -1455,15 +1445,5 @@ mod tests {
         assert!(!snapshot_is_behind(Some(300), Millis(299)));
         assert!(!snapshot_is_behind(Some(299), Millis(300)));
         assert!(!snapshot_is_behind(Some(5100), Millis(5000)));
-    }
-
-    #[test]
-    fn keys_parse_from_raw_or_hex_and_anything_else_is_an_error() {
-        assert_eq!(parse_key(&KEY).unwrap(), KEY);
-        let hex = format!("{}\n", "09".repeat(32));
-        assert_eq!(parse_key(hex.as_bytes()).unwrap(), KEY);
-        for bad in [&b""[..], &[0u8; 31], &[0u8; 33], "zz".repeat(32).as_bytes()] {
-            assert!(matches!(parse_key(bad), Err(IoError::BadKey(_))));
-        }
     }
 }

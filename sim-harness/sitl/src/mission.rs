@@ -172,7 +172,7 @@ pub enum SitlError {
 
 impl SitlConfig {
     /// Every setting in its range (NaN never is): the faults, the speed, the time limit, the
-    /// lost drone. [`SitlWorld::new`] refuses a config that fails this.
+    /// lost drone and the killed daemon. [`SitlWorld::new`] refuses a config that fails this.
     pub fn validate(&self) -> Result<(), SitlError> {
         let bad = |field, reason: &str| {
             Err(SitlError::Invalid {
@@ -234,19 +234,22 @@ impl SitlConfig {
                 "the time must be a finite number of seconds >= 0",
             );
         }
-        if let Some((index, at)) = self.lose_drone {
+        for (field, fault) in [
+            ("lost drone", self.lose_drone),
+            ("killed daemon", self.kill_daemon),
+        ] {
+            let Some((index, at)) = fault else {
+                continue;
+            };
             let drones = self.scenario.herder_count();
             if index >= drones {
                 return Err(SitlError::Invalid {
-                    field: "lost drone",
+                    field,
                     reason: format!("index {index}, but the drones are 0..{drones}"),
                 });
             }
             if !(at.is_finite() && at >= 0.0) {
-                return bad(
-                    "lost drone",
-                    "the time must be a finite number of seconds >= 0",
-                );
+                return bad(field, "the time must be a finite number of seconds >= 0");
             }
         }
         Ok(())
@@ -759,6 +762,12 @@ mod tests {
         let mut c = ok.clone();
         c.lose_drone = Some((2, 5.0)); // the indoor preset flies drones 0 and 1
         assert_eq!(field(c), "lost drone");
+        let mut c = ok.clone();
+        c.kill_daemon = Some((2, 5.0));
+        assert_eq!(field(c), "killed daemon");
+        let mut c = ok.clone();
+        c.kill_daemon = Some((0, f64::NAN));
+        assert_eq!(field(c), "killed daemon");
         let mut c = ok.clone();
         c.faults.loss = f64::NAN;
         assert_eq!(field(c), "loss");

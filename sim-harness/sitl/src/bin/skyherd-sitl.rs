@@ -297,32 +297,16 @@ impl Cli {
                 ),
             }
         }
-        if let Some(spec) = &self.kill_daemon {
-            let parsed = spec.split_once('@').and_then(|(index, at)| {
-                Some((index.parse::<usize>().ok()?, at.parse::<f64>().ok()?))
-            });
-            let drones = scenario.herder_count();
-            match parsed {
-                Some((index, at)) if index < drones && at.is_finite() && at >= 0.0 => {
-                    config.kill_daemon = Some((index, at));
-                }
-                _ => bail!(
-                    "--kill-daemon must be INDEX@TIME with INDEX in 0..{drones} and TIME >= 0 seconds, got {spec:?}"
-                ),
-            }
-        }
-        if let Some(spec) = &self.lose_drone {
-            let (index, at) = spec
-                .split_once('@')
-                .with_context(|| format!("--lose-drone must be INDEX@TIME, got {spec:?}"))?;
-            let index = index
-                .parse()
-                .with_context(|| format!("--lose-drone index in {spec:?}"))?;
-            let at = at
-                .parse()
-                .with_context(|| format!("--lose-drone time in {spec:?}"))?;
-            config.lose_drone = Some((index, at));
-        }
+        config.kill_daemon = self
+            .kill_daemon
+            .as_deref()
+            .map(|spec| drone_at(spec, "--kill-daemon"))
+            .transpose()?;
+        config.lose_drone = self
+            .lose_drone
+            .as_deref()
+            .map(|spec| drone_at(spec, "--lose-drone"))
+            .transpose()?;
         config.validate().map_err(|e| {
             let flag = match &e {
                 SitlError::Invalid { field: "loss", .. } => "--loss",
@@ -334,6 +318,10 @@ impl Cli {
                     field: "lost drone",
                     ..
                 } => "--lose-drone",
+                SitlError::Invalid {
+                    field: "killed daemon",
+                    ..
+                } => "--kill-daemon",
                 SitlError::Invalid {
                     field: "land after",
                     ..
@@ -348,6 +336,21 @@ impl Cli {
         })?;
         Ok(config)
     }
+}
+
+/// A fault's `INDEX@TIME` (drone index, simulated seconds), as `flag` takes it; its range is
+/// `SitlConfig::validate`'s to check.
+fn drone_at(spec: &str, flag: &str) -> Result<(usize, f64)> {
+    let (index, at) = spec
+        .split_once('@')
+        .with_context(|| format!("{flag} must be INDEX@TIME, got {spec:?}"))?;
+    let index = index
+        .parse()
+        .with_context(|| format!("{flag} index in {spec:?}"))?;
+    let at = at
+        .parse()
+        .with_context(|| format!("{flag} time in {spec:?}"))?;
+    Ok((index, at))
 }
 
 /// One whole console line (stderr is shared with the ground station's).
