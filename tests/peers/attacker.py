@@ -75,11 +75,11 @@ def parser(key=None):
     return p
 
 
-def drain(sock, seconds, key=None):
-    """Datagrams received within `seconds`, and the HEARTBEATs among them (verified when a key
-    is given)."""
+def receive(sock, seconds, key=None):
+    """Every datagram that arrives within `seconds`, and the messages parsed from them
+    (signatures verified when a key is given)."""
     parser_ = parser(key)
-    datagrams, heartbeats = 0, 0
+    datagrams, messages = 0, []
     end = time.time() + seconds
     while time.time() < end:
         try:
@@ -87,10 +87,14 @@ def drain(sock, seconds, key=None):
         except socket.timeout:
             continue
         datagrams += 1
-        for msg in parser_.parse_buffer(data) or []:
-            if msg.get_type() == "HEARTBEAT":
-                heartbeats += 1
-    return datagrams, heartbeats
+        messages.extend(parser_.parse_buffer(data) or [])
+    return datagrams, messages
+
+
+def drain(sock, seconds, key=None):
+    """Datagrams received within `seconds`, and the HEARTBEATs among them."""
+    datagrams, messages = receive(sock, seconds, key)
+    return datagrams, sum(1 for m in messages if m.get_type() == "HEARTBEAT")
 
 
 def cmd_uplink(a):
@@ -208,18 +212,9 @@ def cmd_disarm(a):
 
 
 def count_acks(sock, seconds, key=None):
-    parser_ = parser(key)
-    acks = []
-    end = time.time() + seconds
-    while time.time() < end:
-        try:
-            data, _ = sock.recvfrom(4096)
-        except socket.timeout:
-            continue
-        for msg in parser_.parse_buffer(data) or []:
-            if msg.get_type() == "COMMAND_ACK":
-                acks.append(msg.result)
-    return acks
+    """The results of the COMMAND_ACKs received within `seconds`."""
+    _, messages = receive(sock, seconds, key)
+    return [m.result for m in messages if m.get_type() == "COMMAND_ACK"]
 
 
 def main():
