@@ -28,12 +28,18 @@ impl FlightMode {
     pub const PX4_HOLD: Self = Self::Px4 { main: 4, sub: 3 };
     /// PX4 AUTO.LAND: descend where it is, disarm on touchdown (`MAV_CMD_NAV_LAND`).
     pub const PX4_LAND: Self = Self::Px4 { main: 4, sub: 6 };
+    /// PX4 AUTO.TAKEOFF: climb to the takeoff altitude, then hold (AUTO.LOITER).
+    pub const PX4_TAKEOFF: Self = Self::Px4 { main: 4, sub: 2 };
+    /// PX4 AUTO.RTL: return to home and land.
+    pub const PX4_RTL: Self = Self::Px4 { main: 4, sub: 5 };
     /// ArduPilot GUIDED (external setpoints).
     pub const ARDUPILOT_GUIDED: Self = Self::ArduPilot(4);
     /// ArduPilot LOITER: hold position.
     pub const ARDUPILOT_LOITER: Self = Self::ArduPilot(5);
     /// ArduPilot LAND: descend where it is, disarm on touchdown.
     pub const ARDUPILOT_LAND: Self = Self::ArduPilot(9);
+    /// ArduPilot RTL: return to home and land.
+    pub const ARDUPILOT_RTL: Self = Self::ArduPilot(6);
 
     /// The mode a heartbeat reports.
     pub fn from_heartbeat(autopilot: MavAutopilot, custom_mode: u32) -> Self {
@@ -105,6 +111,21 @@ impl Flavour {
             Self::Px4 => FlightMode::PX4_LAND,
             Self::ArduPilot => FlightMode::ARDUPILOT_LAND,
         }
+    }
+
+    /// The mode the autopilot returns home in (`MAV_CMD_NAV_RETURN_TO_LAUNCH`).
+    pub fn rtl_mode(self) -> FlightMode {
+        match self {
+            Self::Px4 => FlightMode::PX4_RTL,
+            Self::ArduPilot => FlightMode::ARDUPILOT_RTL,
+        }
+    }
+
+    /// Whether the daemon takes off with `MAV_CMD_NAV_TAKEOFF` in the control mode
+    /// (ArduCopter: GUIDED velocity commands do not lift a landed copter) rather than by
+    /// climbing on its own velocity setpoints (PX4 OFFBOARD takes off on an upward setpoint).
+    pub fn takes_off_by_command(self) -> bool {
+        matches!(self, Self::ArduPilot)
     }
 
     /// The custom main mode to request with `MAV_CMD_DO_SET_MODE` (param 2) for

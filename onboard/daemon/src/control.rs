@@ -8,10 +8,23 @@
 //! simulator's lockstep clock, and in tests.
 //!
 //! # Mission flow
-//! On a start command the core streams zero-velocity setpoints, asks the autopilot to arm, and
-//! once the stream has run for [`CoreConfig::stream_before_mode`] asks for the autopilot's
-//! external-control mode (PX4 OFFBOARD, ArduPilot GUIDED). When the autopilot reports armed and
-//! in that mode, the core flies: world snapshot (own position replaced by the autopilot's, which
+//! On a start command the core brings the autopilot under control and into the air, the way
+//! each family wants it:
+//! * **PX4**: stream zero-velocity setpoints, arm, and once the stream has run for
+//!   [`CoreConfig::stream_before_mode`] ask for OFFBOARD; then climb on its own upward
+//!   setpoints (PX4 OFFBOARD takes off on them; zero setpoints on the ground would let PX4
+//!   disarm itself after `COM_DISARM_PRFLT`).
+//! * **ArduPilot**: ask for GUIDED, then arm, then at once `MAV_CMD_NAV_TAKEOFF` (ArduCopter's
+//!   GUIDED velocity commands do not lift a landed copter, and it disarms `DISARM_DELAY`
+//!   after arming without a takeoff); no setpoints while the takeoff climbs, since one would
+//!   cut it short.
+//!
+//! Either way the core is airborne once its height (above the autopilot's home, the local
+//! origin) reaches [`CoreConfig::takeoff_altitude`] less [`TAKEOFF_TOLERANCE_M`]; a vehicle
+//! that is already up there when the mission starts is airborne at once, one in the air below
+//! it climbs on setpoints. Until airborne, an autopilot that disarms on the ground is armed
+//! again (its own timeout, not a pilot); after, any loss of control is the pilot's. Then the
+//! core flies: world snapshot (own position replaced by the autopilot's, which
 //! is fresher, its height counted from the altitude band's floor) -> [`skyherd_onboard::obs::encode`] -> [`OnboardPolicy::act`] ->
 //! [`skyherd_onboard::obs::LocalFrame::action_to_world`] -> [`skyherd_onboard::safety::check`] ->
 //! [`skyherd_onboard::frame::sim_to_ned`].
@@ -127,12 +140,18 @@ pub struct CoreConfig {
     /// Keep apart from the other drones of the snapshot (`skyherd_onboard::separation`), before
     /// the safety rules; `None`: off, the actor's request goes to the rules as it is.
     pub separation: Option<SeparationConfig>,
+    /// Height to take off to before the actor flies, m above the autopilot's home (its local
+    /// origin, NED z = 0 on the ground there).
+    pub takeoff_altitude: f32,
+    /// Climb speed of a takeoff on setpoints (PX4, or an ArduCopter already in the air), m/s.
+    pub climb_speed: f32,
 }
 
 impl CoreConfig {
     /// Defaults for a drone: 5 m/s, uplink stale after 1 s (the ground sends at >= 5 Hz),
     /// autopilot lost after 1.5 s, 1.2 s of stream before the mode switch, retries every 1 s,
-    /// landing after 10 s of stale uplink (11 s after the last snapshot).
+    /// landing after 10 s of stale uplink (11 s after the last snapshot), takeoff to 1 m at
+    /// 0.7 m/s.
     pub fn new(system_id: u8, herder_index: usize, flavour: Flavour) -> Self {
         CoreConfig {
             system_id,
@@ -145,6 +164,8 @@ impl CoreConfig {
             command_retry: Duration::from_millis(1000),
             land_after: Some(Duration::from_secs(10)),
             separation: None,
+            takeoff_altitude: 1.0,
+            climb_speed: 0.7,
         }
     }
 }
@@ -165,7 +186,7 @@ impl OnboardPolicy for Actor<'_> {
 }
 
 /// A command for the autopilot; the shell turns it into a `COMMAND_LONG`.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq)]
 pub enum AutopilotCommand {
     /// `MAV_CMD_COMPONENT_ARM_DISARM`, param 1 = 1.
     Arm,
@@ -176,6 +197,11 @@ pub enum AutopilotCommand {
     },
     /// `MAV_CMD_NAV_LAND`: land where you are (the autopilot's LAND mode, disarm on touchdown).
     Land,
+    /// `MAV_CMD_NAV_TAKEOFF` to `altitude_m` above home (ArduPilot, in GUIDED, armed, landed).
+    Takeoff {
+        /// Metres above home.
+        altitude_m: f32,
+    },
 }
 
 /// A velocity setpoint for `SET_POSITION_TARGET_LOCAL_NED` (type_mask 0x0DC7).
@@ -201,7 +227,17 @@ pub enum Preparing {
     Streaming,
     /// Waiting for the autopilot to report the control mode.
     SwitchingMode,
+    /// Under control, climbing to the takeoff altitude.
+    TakingOff,
 }
+
+/// A takeoff is over this close (m) below [`CoreConfig::takeoff_altitude`] (ArduCopter's
+/// settles 0.03 m short of it).
+pub const TAKEOFF_TOLERANCE_M: f32 = 0.1;
+
+/// Below this height (m above home) the vehicle is on the ground: ArduPilot takes off with
+/// `MAV_CMD_NAV_TAKEOFF` from here, and a disarm here before the takeoff is the autopilot's.
+pub const ON_GROUND_M: f32 = 0.3;
 
 /// Why the core sends zero-velocity setpoints instead of the actor's.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -386,6 +422,11 @@ struct ActiveMission {
     last_mode_request: Option<Millis>,
     /// The autopilot has been armed and in the control mode under this mission.
     engaged: bool,
+    /// The takeoff is over: the actor flies.
+    airborne: bool,
+    last_takeoff_request: Option<Millis>,
+    /// The autopilot accepted `MAV_CMD_NAV_TAKEOFF`: it climbs on its own.
+    takeoff_accepted: bool,
     released: bool,
     /// The autopilot link dropped during the mission; cleared on the first healthy tick.
     link_was_lost: bool,
@@ -532,6 +573,11 @@ impl<P: OnboardPolicy> DaemonCore<P> {
                     landing.accepted = true;
                 }
             }
+            AutopilotCommand::Takeoff { .. } => {
+                if let Mission::Active(mission) = &mut self.mission {
+                    mission.takeoff_accepted = true;
+                }
+            }
         }
     }
 
@@ -653,6 +699,9 @@ impl<P: OnboardPolicy> DaemonCore<P> {
                     last_arm_request: None,
                     last_mode_request: None,
                     engaged: false,
+                    airborne: false,
+                    last_takeoff_request: None,
+                    takeoff_accepted: false,
                     released: false,
                     link_was_lost: false,
                 });
@@ -751,17 +800,42 @@ impl<P: OnboardPolicy> DaemonCore<P> {
                 mission.streaming_since = None;
             }
         }
+        let height = self.autopilot.position.map(|(p, _)| p[2]);
+        let on_ground = height.is_some_and(|h| h < ON_GROUND_M);
         if mission.engaged && !in_control {
-            mission.released = true;
+            if !mission.airborne && !self.autopilot.armed && on_ground {
+                // Disarmed on the ground before the takeoff: the autopilot's own timeout
+                // (PX4 COM_DISARM_PRFLT, ArduCopter DISARM_DELAY), not a pilot. Start over.
+                info!("autopilot disarmed on the ground before the takeoff: arming again");
+                mission.engaged = false;
+                mission.streaming_since = None;
+                mission.takeoff_accepted = false;
+                mission.last_takeoff_request = None;
+            } else {
+                mission.released = true;
+            }
         }
         if mission.released {
             return hold(HoldReason::ControlReleased);
         }
         let streaming_since = *mission.streaming_since.get_or_insert(now);
+        let retry = self.config.command_retry;
+        let due = |last: Option<Millis>| last.is_none_or(|t| now.since(t) >= retry);
         if !in_control {
-            let retry = self.config.command_retry;
-            let due = |last: Option<Millis>| last.is_none_or(|t| now.since(t) >= retry);
-            let (command, step) = if !self.autopilot.armed {
+            let by_command = self.config.flavour.takes_off_by_command();
+            let in_mode = self.autopilot.in_control_mode;
+            let mode_request = |mission: &mut ActiveMission| {
+                due(mission.last_mode_request).then(|| {
+                    mission.last_mode_request = Some(now);
+                    AutopilotCommand::SetMode {
+                        custom_main_mode: self.config.flavour.control_mode(),
+                    }
+                })
+            };
+            let (command, step) = if by_command && !in_mode {
+                // ArduCopter: GUIDED first, so that the takeoff can follow the arming at once.
+                (mode_request(mission), Preparing::SwitchingMode)
+            } else if !self.autopilot.armed {
                 let command = due(mission.last_arm_request).then(|| {
                     mission.last_arm_request = Some(now);
                     AutopilotCommand::Arm
@@ -770,13 +844,7 @@ impl<P: OnboardPolicy> DaemonCore<P> {
             } else if now.since(streaming_since) < self.config.stream_before_mode {
                 (None, Preparing::Streaming)
             } else {
-                let command = due(mission.last_mode_request).then(|| {
-                    mission.last_mode_request = Some(now);
-                    AutopilotCommand::SetMode {
-                        custom_main_mode: self.config.flavour.control_mode(),
-                    }
-                });
-                (command, Preparing::SwitchingMode)
+                (mode_request(mission), Preparing::SwitchingMode)
             };
             return ControlOutput {
                 setpoint: Some(Setpoint::HOLD),
@@ -785,6 +853,47 @@ impl<P: OnboardPolicy> DaemonCore<P> {
             };
         }
         mission.engaged = true;
+        if !mission.airborne {
+            let Some(height) = height else {
+                return hold(HoldReason::NoPosition);
+            };
+            if height >= self.config.takeoff_altitude - TAKEOFF_TOLERANCE_M {
+                info!("airborne at {height:.2} m: flying the mission");
+                mission.airborne = true;
+            } else if self.config.flavour.takes_off_by_command() && on_ground {
+                // ArduCopter climbs on NAV_TAKEOFF by itself; a setpoint now would end it.
+                let command = (!mission.takeoff_accepted && due(mission.last_takeoff_request))
+                    .then(|| {
+                        mission.last_takeoff_request = Some(now);
+                        AutopilotCommand::Takeoff {
+                            altitude_m: self.config.takeoff_altitude,
+                        }
+                    });
+                return ControlOutput {
+                    setpoint: None,
+                    command,
+                    status: Status::Preparing(Preparing::TakingOff),
+                };
+            } else if !(self.config.flavour.takes_off_by_command() && mission.takeoff_accepted) {
+                // Climb on setpoints: PX4 OFFBOARD lifts off on them; in the air they work
+                // for both.
+                let climb = self.config.climb_speed.min(self.config.max_speed);
+                return ControlOutput {
+                    setpoint: Some(Setpoint {
+                        velocity_ned: [0.0, 0.0, -climb],
+                    }),
+                    command: None,
+                    status: Status::Preparing(Preparing::TakingOff),
+                };
+            } else {
+                // ArduCopter's own takeoff, under way above the ground.
+                return ControlOutput {
+                    setpoint: None,
+                    command: None,
+                    status: Status::Preparing(Preparing::TakingOff),
+                };
+            }
+        }
         if let Some(reason) = given_up {
             warn!("uplink stale for longer than the land-after time in flight: landing");
             self.counters.landings += 1;
@@ -1156,30 +1265,135 @@ mod tests {
         assert_eq!(c.own_position(), Some([45.0, 30.0, 4.0]));
     }
 
+    /// Feeds a heartbeat and a position at `height` m above home (sim (45, 30, height)).
+    fn autopilot_at(
+        core: &mut DaemonCore<TowardsGoal>,
+        t: u64,
+        armed: bool,
+        custom_mode: u32,
+        height: f32,
+    ) {
+        core.on_heartbeat(Millis(t), if armed { ARMED } else { 0 }, custom_mode);
+        core.on_local_position(Millis(t), sim_to_ned([45.0, 30.0, height]));
+    }
+
     #[test]
-    fn ardupilot_uses_guided_mode_4() {
+    fn ardupilot_goes_guided_arms_and_takes_off_by_command() {
         let mut c = core(Flavour::ArduPilot);
-        autopilot(&mut c, 0, true, 0);
+        autopilot_at(&mut c, 0, false, 0, 0.0);
         c.on_uplink(Millis(0), start());
         c.on_uplink(Millis(0), snapshot(1));
-        assert_eq!(
-            c.tick(Millis(0)).status,
-            Status::Preparing(Preparing::Streaming)
-        );
-        autopilot(&mut c, 1200, true, 0);
-        c.on_uplink(Millis(1200), snapshot(2));
-        let d = c.tick(Millis(1200));
+        // GUIDED first (mode 4), before arming: the takeoff must follow the arming at once.
+        let d = c.tick(Millis(0));
+        assert_eq!(d.status, Status::Preparing(Preparing::SwitchingMode));
         assert_eq!(
             d.command,
             Some(AutopilotCommand::SetMode {
                 custom_main_mode: 4
             })
         );
-        autopilot(&mut c, 1300, true, 4);
-        assert_eq!(c.tick(Millis(1300)).status, Status::Flying(Reasons::NONE));
+        autopilot_at(&mut c, 100, false, 4, 0.0);
+        let d = c.tick(Millis(100));
+        assert_eq!(
+            (d.status, d.command),
+            (
+                Status::Preparing(Preparing::Arming),
+                Some(AutopilotCommand::Arm)
+            )
+        );
+        autopilot_at(&mut c, 200, true, 4, 0.0);
+        let d = c.tick(Millis(200));
+        assert_eq!(d.status, Status::Preparing(Preparing::TakingOff));
+        assert_eq!(
+            d.command,
+            Some(AutopilotCommand::Takeoff { altitude_m: 1.0 })
+        );
+        assert_eq!(
+            d.setpoint, None,
+            "a setpoint would cut ArduCopter's takeoff short"
+        );
+        c.on_command_accepted(Millis(250), AutopilotCommand::Takeoff { altitude_m: 1.0 });
+        autopilot_at(&mut c, 300, true, 4, 0.0);
+        let d = c.tick(Millis(300));
+        assert_eq!(
+            (d.command, d.setpoint),
+            (None, None),
+            "accepted: no repeat, no setpoint"
+        );
+        autopilot_at(&mut c, 900, true, 4, 0.6);
+        assert_eq!(c.tick(Millis(900)).setpoint, None);
+        c.on_uplink(Millis(1500), snapshot(2));
+        autopilot_at(&mut c, 1500, true, 4, 0.95);
+        assert_eq!(c.tick(Millis(1500)).status, Status::Flying(Reasons::NONE));
         // PX4's OFFBOARD number means nothing to ArduPilot.
         assert!(!Flavour::ArduPilot.is_control_mode(PX4_OFFBOARD));
         assert!(Flavour::Px4.is_control_mode(PX4_OFFBOARD | (1 << 24)));
+    }
+
+    #[test]
+    fn px4_climbs_on_setpoints_after_offboard() {
+        let mut c = core(Flavour::Px4);
+        autopilot_at(&mut c, 0, false, 0, 0.0);
+        c.on_uplink(Millis(0), start());
+        c.on_uplink(Millis(0), snapshot(1));
+        assert_eq!(c.tick(Millis(0)).command, Some(AutopilotCommand::Arm));
+        autopilot_at(&mut c, 100, true, 0, 0.0);
+        assert_eq!(
+            c.tick(Millis(100)).status,
+            Status::Preparing(Preparing::Streaming)
+        );
+        autopilot_at(&mut c, 1300, true, 0, 0.0);
+        assert_eq!(
+            c.tick(Millis(1300)).command,
+            Some(AutopilotCommand::SetMode {
+                custom_main_mode: 6
+            })
+        );
+        autopilot_at(&mut c, 1400, true, PX4_OFFBOARD, 0.0);
+        let d = c.tick(Millis(1400));
+        assert_eq!(d.status, Status::Preparing(Preparing::TakingOff));
+        assert_eq!(d.command, None, "no NAV_TAKEOFF on PX4");
+        assert_eq!(
+            d.setpoint,
+            Some(Setpoint {
+                velocity_ned: [0.0, 0.0, -0.7]
+            })
+        );
+        c.on_uplink(Millis(2900), snapshot(2));
+        autopilot_at(&mut c, 2900, true, PX4_OFFBOARD, 0.92);
+        assert_eq!(c.tick(Millis(2900)).status, Status::Flying(Reasons::NONE));
+    }
+
+    #[test]
+    fn a_disarm_on_the_ground_before_the_takeoff_is_retried_one_in_the_air_is_the_pilots() {
+        let mut c = core(Flavour::Px4);
+        autopilot_at(&mut c, 0, true, PX4_OFFBOARD, 0.0);
+        c.on_uplink(Millis(0), start());
+        c.on_uplink(Millis(0), snapshot(1));
+        assert_eq!(
+            c.tick(Millis(0)).status,
+            Status::Preparing(Preparing::TakingOff)
+        );
+        // COM_DISARM_PRFLT fired: on the ground, never airborne. Arm again.
+        autopilot_at(&mut c, 2000, false, 4 << 16 | 3 << 24, 0.0);
+        let d = c.tick(Millis(2000));
+        assert_eq!(
+            (d.status, d.command),
+            (
+                Status::Preparing(Preparing::Arming),
+                Some(AutopilotCommand::Arm)
+            )
+        );
+        // Airborne, then switched to hold by someone: released.
+        autopilot_at(&mut c, 2100, true, PX4_OFFBOARD, 1.0);
+        c.on_uplink(Millis(2100), snapshot(2));
+        assert_eq!(c.tick(Millis(2100)).status, Status::Flying(Reasons::NONE));
+        autopilot_at(&mut c, 4000, true, 4 << 16 | 3 << 24, 1.0);
+        c.on_uplink(Millis(4000), snapshot(3));
+        assert_eq!(
+            c.tick(Millis(4000)).status,
+            Status::Holding(HoldReason::ControlReleased)
+        );
     }
 
     #[test]

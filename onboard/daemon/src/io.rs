@@ -46,6 +46,13 @@ pub use skyherd_link::DAEMON_COMPONENT_ID as COMPONENT_ID;
 use skyherd_link::command::{command_long, land, velocity_setpoint_ned};
 use skyherd_link::replay::{ReplayGuard, ReplayStateError, SignatureError, SigningTime};
 use skyherd_link::signing::{SigningKey, signing_data};
+/// The LOCAL_POSITION_NED interval the daemon asks for, µs: 10 Hz, the actor's control rate.
+pub const POSITION_INTERVAL_US: f32 = 100_000.0;
+/// MAVLink message id of LOCAL_POSITION_NED.
+const LOCAL_POSITION_NED_ID: f32 = 32.0;
+/// No position for this long (wall time): ask for the stream again.
+const POSITION_SILENCE: Duration = Duration::from_millis(1500);
+
 /// HEARTBEAT period, ms of the daemon's clock.
 pub const HEARTBEAT_PERIOD: Duration = Duration::from_millis(1000);
 /// Slowest control rate accepted, Hz: PX4 leaves OFFBOARD when setpoints come slower than 2 Hz.
@@ -431,6 +438,10 @@ pub struct AutopilotCounters {
     pub commands_sent: u64,
     /// Commands the autopilot refused (COMMAND_ACK other than accepted / in progress).
     pub commands_refused: u64,
+    /// COMMAND_ACKs addressed to another requester (a ground station on a shared link).
+    pub others_acks: u64,
+    /// SET_MESSAGE_INTERVAL requests for LOCAL_POSITION_NED (sent while none arrives).
+    pub stream_requests: u64,
 }
 
 /// Everything the shell has counted, for logs and tests.
@@ -491,6 +502,10 @@ pub struct Daemon<P> {
     counters: ShellCounters,
     ground_sequence: u8,
     stop: Arc<AtomicBool>,
+    /// When the last LOCAL_POSITION_NED arrived, and when it was last asked for (wall time:
+    /// the request's retry is the shell's business, not the core's).
+    position_heard_at: Option<Instant>,
+    positions_requested_at: Option<Instant>,
 }
 
 /// How long reader threads block before looking at the stop flag.
@@ -780,6 +795,8 @@ impl<P: OnboardPolicy> Daemon<P> {
             boot_clock: BootClock::default(),
             counters: ShellCounters::default(),
             ground_sequence: 0,
+            position_heard_at: None,
+            positions_requested_at: None,
             stop,
         })
     }
@@ -971,20 +988,35 @@ impl<P: OnboardPolicy> Daemon<P> {
                 self.counters.autopilot.received += 1;
                 self.core
                     .on_heartbeat(now, hb.base_mode.bits(), hb.custom_mode);
+                self.request_positions_if_silent();
             }
             MavMessage::LOCAL_POSITION_NED(p) => {
+                self.position_heard_at = Some(Instant::now());
                 self.counters.autopilot.received += 1;
                 self.core.on_local_position(now, [p.x, p.y, p.z]);
             }
             MavMessage::COMMAND_ACK(ack) => {
                 self.counters.autopilot.received += 1;
+                // An autopilot that fills the ACK's target fields (MAVLink 2 extensions; PX4
+                // and ArduPilot do) says whose command it answers: a ground station's mode
+                // change on a shared link is not ours. Zero: an older sender, taken as ours.
+                let ours = (ack.target_system == 0 && ack.target_component == 0)
+                    || (ack.target_system == self.core.config().system_id
+                        && ack.target_component == COMPONENT_ID);
+                if !ours {
+                    self.counters.autopilot.others_acks += 1;
+                    return;
+                }
                 match ack.result {
                     MavResult::MAV_RESULT_ACCEPTED => {
                         info!("autopilot accepted {:?}", ack.command);
-                        // We only ever arm, switch to our control mode and land.
+                        // We only ever arm, switch to our control mode, take off and land.
                         let command = match ack.command {
                             MavCmd::MAV_CMD_COMPONENT_ARM_DISARM => Some(AutopilotCommand::Arm),
                             MavCmd::MAV_CMD_NAV_LAND => Some(AutopilotCommand::Land),
+                            MavCmd::MAV_CMD_NAV_TAKEOFF => Some(AutopilotCommand::Takeoff {
+                                altitude_m: self.core.config().takeoff_altitude,
+                            }),
                             MavCmd::MAV_CMD_DO_SET_MODE => Some(AutopilotCommand::SetMode {
                                 custom_main_mode: self.core.config().flavour.control_mode(),
                             }),
@@ -1096,12 +1128,60 @@ impl<P: OnboardPolicy> Daemon<P> {
         self.counters.autopilot.setpoints_sent += 1;
     }
 
+    /// ArduPilot sends LOCAL_POSITION_NED only to a link that asked for it (and only once its
+    /// EKF has an origin); PX4 streams it anyway and accepts the request. So while none
+    /// arrives, every autopilot HEARTBEAT asks for it at [`POSITION_INTERVAL_US`], at most
+    /// once a second of wall time (a request ArduCopter acknowledges before its first
+    /// heartbeat can be lost, so it is repeated rather than trusted).
+    fn request_positions_if_silent(&mut self) {
+        let silent = self
+            .position_heard_at
+            .is_none_or(|t| t.elapsed() > POSITION_SILENCE);
+        let due = self
+            .positions_requested_at
+            .is_none_or(|t| t.elapsed() >= Duration::from_secs(1));
+        if !(silent && due) {
+            return;
+        }
+        self.positions_requested_at = Some(Instant::now());
+        let system_id = self.core.config().system_id;
+        debug!("asking the autopilot for LOCAL_POSITION_NED every {POSITION_INTERVAL_US} us");
+        let message = command_long(
+            system_id,
+            AUTOPILOT_COMPONENT_ID,
+            MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL,
+            [
+                LOCAL_POSITION_NED_ID,
+                POSITION_INTERVAL_US,
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+                0.0,
+            ],
+        );
+        self.send_autopilot(&message);
+        self.counters.autopilot.stream_requests += 1;
+    }
+
     fn send_command(&mut self, command: AutopilotCommand) {
         let system_id = self.core.config().system_id;
         let (command_id, param1, param2) = match command {
             AutopilotCommand::Land => {
                 warn!("sending MAV_CMD_NAV_LAND");
                 self.send_autopilot(&land(system_id, AUTOPILOT_COMPONENT_ID));
+                self.counters.autopilot.commands_sent += 1;
+                return;
+            }
+            AutopilotCommand::Takeoff { altitude_m } => {
+                info!("sending MAV_CMD_NAV_TAKEOFF to {altitude_m} m");
+                let message = command_long(
+                    system_id,
+                    AUTOPILOT_COMPONENT_ID,
+                    MavCmd::MAV_CMD_NAV_TAKEOFF,
+                    [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, altitude_m],
+                );
+                self.send_autopilot(&message);
                 self.counters.autopilot.commands_sent += 1;
                 return;
             }
@@ -1160,6 +1240,7 @@ impl<P: OnboardPolicy> Daemon<P> {
         let message = MavMessage::STATUSTEXT(STATUSTEXT_DATA {
             severity,
             text: text.as_str().into(),
+            ..Default::default()
         });
         self.send_to_ground(&message);
         self.counters.status_texts_sent += 1;

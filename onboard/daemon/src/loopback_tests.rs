@@ -226,6 +226,23 @@ fn daemon_flies_a_fake_px4_and_rejects_forged_uplink() {
             MavMessage::HEARTBEAT(hb) => {
                 assert_eq!(hb.mavtype, MavType::MAV_TYPE_ONBOARD_CONTROLLER);
                 seen.heartbeats += 1;
+                if seen.heartbeats == 1 {
+                    // A ground station's mode change acknowledged on the shared link: not
+                    // the daemon's, whatever the command.
+                    let theirs = MavMessage::COMMAND_ACK(COMMAND_ACK_DATA {
+                        command: MavCmd::MAV_CMD_DO_SET_MODE,
+                        result: MavResult::MAV_RESULT_ACCEPTED,
+                        target_system: 255,
+                        target_component: 190,
+                        ..Default::default()
+                    });
+                    let header = MavHeader {
+                        system_id: u32::from(DRONE),
+                        component_id: 1,
+                        sequence: 0,
+                    };
+                    autopilot.send(&header, &theirs).unwrap();
+                }
             }
             MavMessage::COMMAND_LONG(c) => {
                 assert_eq!((c.target_system, c.target_component), (DRONE, 1));
@@ -246,11 +263,19 @@ fn daemon_flies_a_fake_px4_and_rejects_forged_uplink() {
                         custom_mode = (c.param2 as u32) << 16;
                         MavResult::MAV_RESULT_ACCEPTED
                     }
+                    // The daemon asks for the position stream until it flows.
+                    MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL => {
+                        assert_eq!((c.param1, c.param2), (32.0, 100_000.0));
+                        MavResult::MAV_RESULT_ACCEPTED
+                    }
                     other => panic!("unexpected command {other:?}"),
                 };
                 let ack = MavMessage::COMMAND_ACK(COMMAND_ACK_DATA {
                     command: c.command,
                     result,
+                    target_system: DRONE,
+                    target_component: COMPONENT_ID,
+                    ..Default::default()
                 });
                 autopilot
                     .send(
@@ -327,6 +352,7 @@ fn daemon_flies_a_fake_px4_and_rejects_forged_uplink() {
     let (counters, core): (ShellCounters, CoreSummary) = daemon.join().unwrap();
 
     assert!(seen.heartbeats >= 1, "{seen:?}");
+    assert_eq!(counters.autopilot.others_acks, 1, "{counters:?}");
     assert!(seen.arm_commands >= 1, "{seen:?}");
     assert_eq!(seen.mode_commands.first(), Some(&(1.0, 6.0)), "{seen:?}");
     assert!(seen.setpoints >= 20, "{seen:?}");

@@ -406,6 +406,12 @@ fn fly_mission<P: OnboardPolicy>(
             Some(AutopilotCommand::Land) => {
                 return Err(fail("mission", format!("landed at {now:?}")));
             }
+            Some(AutopilotCommand::Takeoff { .. }) => {
+                return Err(fail(
+                    "mission",
+                    format!("NAV_TAKEOFF on PX4 at {now:?}: it climbs on setpoints"),
+                ));
+            }
             None => {}
         }
         let Some(setpoint) = decision.setpoint else {

@@ -35,6 +35,10 @@ pub struct LaunchPlan {
     /// The daemons land after this long of stale uplink in flight (`--land-after-s`), s; 0:
     /// never.
     pub land_after_s: f64,
+    /// The autopilots' family (`--flavour`).
+    pub flavour: skyherd_link::Flavour,
+    /// The daemons take off to this height (`--takeoff-alt-m`), m.
+    pub takeoff_alt_m: f64,
 }
 
 /// The ground station's command: it listens for the fleet at `fleet`, and sends each drone's
@@ -143,6 +147,13 @@ pub fn daemon_command(
         .arg(scenario.limits.herder.to_string())
         .arg("--land-after-s")
         .arg(plan.land_after_s.to_string())
+        .arg("--flavour")
+        .arg(match plan.flavour {
+            skyherd_link::Flavour::Px4 => "px4",
+            skyherd_link::Flavour::ArduPilot => "ardupilot",
+        })
+        .arg("--takeoff-alt-m")
+        .arg(plan.takeoff_alt_m.to_string())
         .stdout(Stdio::null())
         .stderr(log);
     if let Some(m) = plan.keep_apart_m {

@@ -36,7 +36,7 @@ impl Rig {
         let ground_addr = socket.local_addr().unwrap();
         let node = AutopilotNode::bind(
             "127.0.0.1:0".parse().unwrap(),
-            MockAutopilot::new(config, [0.0, 0.0, -2.0], 0.0),
+            MockAutopilot::new(config, [0.0; 3], 0.0),
             NodeOptions {
                 signing,
                 peers: vec![ground_addr],
@@ -124,7 +124,7 @@ fn heartbeat_position_and_battery_reach_the_ground() {
         mavlink::dialects::common::MavType::MAV_TYPE_QUADROTOR
     );
     assert_eq!(v.flight_mode(), FlightMode::PX4_HOLD);
-    assert_eq!(v.position_sim(), Some([0.0, 0.0, 2.0]));
+    assert_eq!(v.position_sim(), Some([0.0; 3]), "on the floor at home");
     assert!(!v.armed);
     // The ground's heartbeats reach the autopilot too.
     for _ in 0..25 {
@@ -171,8 +171,10 @@ fn arm_offboard_refused_then_accepted_setpoint_moves_and_loss_holds() {
         Some(CommandOutcome::Acked(MavResult::MAV_RESULT_ACCEPTED))
     );
 
+    // North and up: a landed vehicle lifts off only on an upward setpoint.
     let north_before = rig.node.autopilot().position_ned()[0];
-    rig.stream_setpoints(2.0, [1.0, 0.0, 0.0]);
+    rig.stream_setpoints(2.0, [1.0, 0.0, -1.0]);
+    assert!(!rig.node.autopilot().landed());
     let moved = rig.node.autopilot().position_ned()[0] - north_before;
     assert!(
         (1.7..2.3).contains(&moved),

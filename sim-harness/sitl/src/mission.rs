@@ -34,7 +34,7 @@ use std::thread;
 use std::time::{Duration, Instant};
 
 use skyherd_ground::detections::{acknowledged_scan, scan_messages};
-use skyherd_link::{Codec, Frame, Signing};
+use skyherd_link::{Codec, Flavour, Frame, Signing};
 use skyherd_onboard::frame::{ned_to_sim, sim_to_ned};
 use thiserror::Error;
 
@@ -96,7 +96,18 @@ pub struct SitlConfig {
     pub kill_ground_at: Option<f64>,
     /// Fault: kill drone `.0`'s daemon (SIGKILL) at simulated time `.1`, seconds.
     pub kill_daemon: Option<(usize, f64)>,
+    /// Which autopilot the mocks behave like (the daemons are told the same).
+    pub autopilot: Flavour,
+    /// The drones start on the floor below their spawn points and take off to this height,
+    /// m; the episode starts when every one is up there under external control. Defaults to
+    /// the scenario's herder altitude, but at least 0.6 m (the onboard altitude band starts at
+    /// 0.5 m: the room preset's zoomed 4 cm is where no real drone hovers) and at most 0.5 m
+    /// below the ceiling.
+    pub takeoff_altitude_m: f64,
 }
+
+/// The episode starts once every drone is this close (m) below the takeoff altitude.
+pub const AIRBORNE_TOLERANCE_M: f64 = 0.15;
 
 impl SitlConfig {
     /// Defaults for a scenario: 0.1 s ticks and scans, sensor noise from the scenario's sensing
@@ -105,6 +116,11 @@ impl SitlConfig {
     pub fn new(scenario: Scenario, seed: u64, ground: SocketAddr) -> Self {
         let sensor = SensorConfig::for_scenario(&scenario);
         let time_limit_s = scenario.step_limit as f64 * scenario.dt;
+        let takeoff_altitude_m = scenario
+            .layout
+            .herder_altitude
+            .max(0.6)
+            .min(scenario.area.ceiling - 0.5);
         Self {
             scenario,
             seed,
@@ -125,6 +141,8 @@ impl SitlConfig {
             land_after_s: 10.0,
             kill_ground_at: None,
             kill_daemon: None,
+            autopilot: Flavour::Px4,
+            takeoff_altitude_m,
         }
         .with_default_separation()
     }
@@ -215,6 +233,16 @@ impl SitlConfig {
                 "wind",
                 "mean within 100 m/s, gusts 0-50 m/s over a positive time",
             );
+        }
+        let ceiling = self.scenario.area.ceiling;
+        if !(self.takeoff_altitude_m.is_finite()
+            && self.takeoff_altitude_m >= 0.3
+            && self.takeoff_altitude_m <= ceiling)
+        {
+            return Err(SitlError::Invalid {
+                field: "takeoff altitude",
+                reason: format!("must be 0.3 m to the ceiling ({ceiling} m)"),
+            });
         }
         if !(self.separation_m.is_finite() && self.separation_m >= 0.0) {
             return bad("separation", "must be a finite distance >= 0");
@@ -335,10 +363,14 @@ impl SitlWorld {
         let mut env = Env::new(config.scenario.clone())?;
         let mut world = env.reset(config.seed).clone();
         world.dt = config.tick_s;
+        // On the floor below the spawn point: they take off before the episode starts.
+        for herder in &mut world.herders {
+            herder[2] = 0.0;
+        }
         let scratch = StepScratch::with_capacity(world.targets.len());
         let mut nodes = Vec::with_capacity(world.herders.len());
         for (i, herder) in world.herders.iter().enumerate() {
-            let mut autopilot = AutopilotConfig::px4(i as u8 + 1);
+            let mut autopilot = AutopilotConfig::for_flavour(config.autopilot, i as u8 + 1);
             autopilot.max_speed = config.scenario.limits.herder;
             autopilot.dynamics = config.dynamics.map(|limits| Motion {
                 limits,
@@ -548,12 +580,13 @@ impl SitlWorld {
         }
         // 1. Autopilots: receive and fly (they report after the world has moved, step 4).
         let (mut flying, mut armed) = (0, 0);
+        let airborne = self.config.takeoff_altitude_m - AIRBORNE_TOLERANCE_M;
         for (i, slot) in self.nodes.iter_mut().enumerate() {
             self.actions[i] = match slot {
                 Some(node) => {
                     let v = ned_to_sim(node.receive_and_fly(t)?);
                     let ap = node.autopilot();
-                    if ap.armed() && ap.mode() == ap.config().flavour.external_mode() {
+                    if ap.under_external_control() && -ap.position_ned()[2] >= airborne {
                         flying += 1;
                     }
                     armed += usize::from(ap.armed());
@@ -578,16 +611,24 @@ impl SitlWorld {
         let before = &self.before;
         if self.flight_start.is_some() {
             advance(&mut self.world, &self.actions, &mut self.scratch)?;
-        }
-        for (i, slot) in self.nodes.iter_mut().enumerate() {
-            if let Some(node) = slot {
-                let p = self.world.herders[i];
-                let v = [
-                    (p[0] - before[i][0]) / self.config.tick_s,
-                    (p[1] - before[i][1]) / self.config.tick_s,
-                    (p[2] - before[i][2]) / self.config.tick_s,
-                ];
-                node.autopilot_mut().set_state(sim_to_ned(p), sim_to_ned(v));
+            for (i, slot) in self.nodes.iter_mut().enumerate() {
+                if let Some(node) = slot {
+                    let p = self.world.herders[i];
+                    let v = [
+                        (p[0] - before[i][0]) / self.config.tick_s,
+                        (p[1] - before[i][1]) / self.config.tick_s,
+                        (p[2] - before[i][2]) / self.config.tick_s,
+                    ];
+                    node.autopilot_mut().set_state(sim_to_ned(p), sim_to_ned(v));
+                }
+            }
+        } else {
+            // Before the episode the vehicles take off on their own: the world follows them
+            // (the flock holds still).
+            for (i, slot) in self.nodes.iter().enumerate() {
+                if let Some(node) = slot {
+                    self.world.herders[i] = ned_to_sim(node.autopilot().position_ned());
+                }
             }
         }
         if self.flight_start.is_some() && self.ending.is_none() {

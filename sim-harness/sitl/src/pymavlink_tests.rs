@@ -31,7 +31,7 @@ fn write_tlog(path: &std::path::Path) -> u64 {
     let socket = UdpSocket::bind("127.0.0.1:0").unwrap();
     let mut node = AutopilotNode::bind(
         "127.0.0.1:0".parse().unwrap(),
-        MockAutopilot::new(AutopilotConfig::px4(1), [1.0, 2.0, -3.0], 0.0),
+        MockAutopilot::new(AutopilotConfig::px4(1), [1.0, 2.0, 0.0], 0.0),
         NodeOptions {
             peers: vec![socket.local_addr().unwrap()],
             ..NodeOptions::default()
@@ -97,7 +97,7 @@ fn pymavlink_sees_arms_switches_mode_and_reads_our_tlog() {
 
     let node = AutopilotNode::bind(
         "127.0.0.1:0".parse().unwrap(),
-        MockAutopilot::new(AutopilotConfig::px4(1), [0.0, 0.0, -2.0], 0.0),
+        MockAutopilot::new(AutopilotConfig::px4(1), [0.0; 3], 0.0),
         NodeOptions::default(),
     )
     .unwrap();
@@ -187,7 +187,7 @@ fn a_signing_autopilot_refuses_a_foreign_unsigned_disarm() {
     key.write_new_file(&key_path).unwrap();
     let node = AutopilotNode::bind(
         "127.0.0.1:0".parse().unwrap(),
-        MockAutopilot::new(AutopilotConfig::px4(1), [0.0, 0.0, -2.0], 0.0),
+        MockAutopilot::new(AutopilotConfig::px4(1), [0.0; 3], 0.0),
         NodeOptions {
             signing: Some(skyherd_link::Signing {
                 key,

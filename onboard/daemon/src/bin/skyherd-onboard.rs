@@ -101,6 +101,10 @@ struct RunArgs {
     /// rule of skyherd_onboard::separation); 0: off.
     #[arg(long, default_value_t = 0.0)]
     separation_m: f32,
+    /// Take off to this height above the autopilot's home before flying the mission, m
+    /// (PX4: climbing in OFFBOARD; ArduPilot: MAV_CMD_NAV_TAKEOFF in GUIDED).
+    #[arg(long, default_value_t = 1.0)]
+    takeoff_alt_m: f32,
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -185,6 +189,13 @@ fn run(args: RunArgs) -> Result<()> {
             ..base
         });
     }
+    if !(args.takeoff_alt_m.is_finite() && (0.3..=100.0).contains(&args.takeoff_alt_m)) {
+        bail!(
+            "--takeoff-alt-m must be 0.3 to 100 m above home, got {}",
+            args.takeoff_alt_m
+        );
+    }
+    config.takeoff_altitude = args.takeoff_alt_m;
     if !(config.max_speed.is_finite() && config.max_speed > 0.0) {
         bail!(
             "--max-speed must be a positive number of m/s, got {}",

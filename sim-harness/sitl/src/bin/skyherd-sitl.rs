@@ -104,6 +104,17 @@ struct Cli {
     /// then fails, once the drones have landed on their own (or 30 simulated s later).
     #[arg(long)]
     kill_ground_at: Option<f64>,
+    /// Which autopilot the mock drones behave like: `px4` (OFFBOARD, climbs on setpoints) or
+    /// `ardupilot` (ArduCopter: GUIDED, NAV_TAKEOFF, positions only when asked). The daemons
+    /// fly the matching flow.
+    #[arg(long, value_enum, default_value_t = AutopilotArg::Px4)]
+    autopilot: AutopilotArg,
+}
+
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+enum AutopilotArg {
+    Px4,
+    Ardupilot,
 }
 
 /// The exit status of a mission that ran but did not succeed (1 is an error before or during
@@ -176,6 +187,8 @@ fn main() -> Result<std::process::ExitCode> {
             1.0
         },
         land_after_s: sitl.config().land_after_s,
+        flavour: sitl.config().autopilot,
+        takeoff_alt_m: sitl.config().takeoff_altitude_m,
     };
     let uplink_ports: Vec<u16> = (0..drones)
         .map(|_| free_udp_port())
@@ -268,6 +281,10 @@ impl Cli {
         config.time_limit_s = self.time_limit;
         config.land_after_s = self.land_after_s;
         config.kill_ground_at = self.kill_ground_at;
+        config.autopilot = match self.autopilot {
+            AutopilotArg::Px4 => skyherd_link::Flavour::Px4,
+            AutopilotArg::Ardupilot => skyherd_link::Flavour::ArduPilot,
+        };
         config.dynamics = match self.dynamics {
             DynamicsArg::Off => None,
             DynamicsArg::Px4 => Some(DynamicsLimits::px4()),
