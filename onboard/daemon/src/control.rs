@@ -145,6 +145,11 @@ pub struct CoreConfig {
     pub takeoff_altitude: f32,
     /// Climb speed of a takeoff on setpoints (PX4, or an ArduCopter already in the air), m/s.
     pub climb_speed: f32,
+    /// Where the autopilot's local origin (its home: LOCAL_POSITION_NED (0, 0, 0)) lies in
+    /// the ground's world frame, simulator frame (x east, y north), metres. Zero when the
+    /// autopilot's local frame is the world's (the mock autopilots); a real autopilot's EKF
+    /// origin is where it booted, which the ground's surveyed frame has to be told.
+    pub local_origin: [f32; 2],
 }
 
 impl CoreConfig {
@@ -166,6 +171,7 @@ impl CoreConfig {
             separation: None,
             takeoff_altitude: 1.0,
             climb_speed: 0.7,
+            local_origin: [0.0; 2],
         }
     }
 }
@@ -581,11 +587,14 @@ impl<P: OnboardPolicy> DaemonCore<P> {
         }
     }
 
-    /// An autopilot LOCAL_POSITION_NED: position `[north, east, down]`, metres.
+    /// An autopilot LOCAL_POSITION_NED: position `[north, east, down]`, metres, from the
+    /// autopilot's local origin (moved into the world frame by [`CoreConfig::local_origin`]).
     pub fn on_local_position(&mut self, now: Millis, position_ned: [f32; 3]) {
         self.autopilot.last_heard = Some(now);
         if position_ned.iter().all(|x| x.is_finite()) {
-            let position = ned_to_sim(position_ned);
+            let local = ned_to_sim(position_ned);
+            let [east, north] = self.config.local_origin;
+            let position = [local[0] + east, local[1] + north, local[2]];
             self.autopilot.velocity = match self.autopilot.position {
                 Some((before, at)) => finite_difference(before, position, now.since(at)),
                 None => [0.0; 3],

@@ -836,11 +836,14 @@ impl<P: OnboardPolicy> Daemon<P> {
         let mut now = Millis(0);
         let mut next_tick = Millis(0);
         let mut next_heartbeat = Millis(0);
-        let mut last_state_save = Instant::now();
+        // The first accepted frames are saved at once, then at most once a second: a daemon
+        // killed (SIGKILL) a moment into a fast lockstep mission still leaves its state.
+        let mut last_state_save: Option<Instant> = None;
         while !self.stop.load(Ordering::Relaxed) {
-            if last_state_save.elapsed() >= Duration::from_secs(1) {
-                self.save_replay_state();
-                last_state_save = Instant::now();
+            if last_state_save.is_none_or(|t| t.elapsed() >= Duration::from_secs(1))
+                && self.save_replay_state()
+            {
+                last_state_save = Some(Instant::now());
             }
             let wait = match self.clock {
                 ClockMode::Wall { .. } => next_tick.since(wall_now()).min(READ_TIMEOUT),
@@ -908,7 +911,7 @@ impl<P: OnboardPolicy> Daemon<P> {
                 next_heartbeat = now.after(HEARTBEAT_PERIOD);
             }
         }
-        self.save_replay_state();
+        let _ = self.save_replay_state();
         info!(
             "stopping; counters: {:?}; core: {:?}",
             self.counters(),
@@ -940,15 +943,16 @@ impl<P: OnboardPolicy> Daemon<P> {
 
     /// Writes the replay state when it changed (a failure is logged: flying on beats stopping,
     /// and the state in memory still guards this run).
-    fn save_replay_state(&mut self) {
+    /// Returns whether it wrote (or tried to write) the file.
+    fn save_replay_state(&mut self) -> bool {
         let Some(path) = &self.replay_state else {
-            return;
+            return false;
         };
         let Some(guard) = self.gate.replay_state() else {
-            return;
+            return false;
         };
         if !guard.is_dirty() {
-            return;
+            return false;
         }
         match save_replay_state(path, guard) {
             Ok(()) => {
@@ -958,6 +962,7 @@ impl<P: OnboardPolicy> Daemon<P> {
             }
             Err(e) => warn!("cannot write the replay state {}: {e}", path.display()),
         }
+        true
     }
 
     fn is_our_autopilot(&self, header: &MavHeader) -> bool {

@@ -105,6 +105,10 @@ struct RunArgs {
     /// (PX4: climbing in OFFBOARD; ArduPilot: MAV_CMD_NAV_TAKEOFF in GUIDED).
     #[arg(long, default_value_t = 1.0)]
     takeoff_alt_m: f32,
+    /// Where the autopilot's local origin (its home, where it booted) lies in the ground's
+    /// world frame: EAST,NORTH metres [default: 0,0, the frames coincide].
+    #[arg(long)]
+    local_origin: Option<String>,
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -196,6 +200,19 @@ fn run(args: RunArgs) -> Result<()> {
         );
     }
     config.takeoff_altitude = args.takeoff_alt_m;
+    if let Some(spec) = &args.local_origin {
+        let parts: Vec<f32> = spec
+            .split(',')
+            .map(|v| v.trim().parse::<f32>())
+            .collect::<Result<_, _>>()
+            .with_context(|| format!("--local-origin must be EAST,NORTH metres, got {spec:?}"))?;
+        match parts[..] {
+            [east, north] if east.is_finite() && north.is_finite() => {
+                config.local_origin = [east, north];
+            }
+            _ => bail!("--local-origin must be two finite numbers EAST,NORTH, got {spec:?}"),
+        }
+    }
     if !(config.max_speed.is_finite() && config.max_speed > 0.0) {
         bail!(
             "--max-speed must be a positive number of m/s, got {}",

@@ -117,6 +117,9 @@ enum AutopilotArg {
     Ardupilot,
 }
 
+/// `--keep-apart`: the daemons' separation distance over the breach distance.
+const KEEP_APART_MARGIN: f64 = 1.1;
+
 /// The exit status of a mission that ran but did not succeed (1 is an error before or during
 /// the run): scripts can tell a failed mission from a broken one.
 const MISSION_FAILED: u8 = 2;
@@ -180,7 +183,11 @@ fn main() -> Result<std::process::ExitCode> {
         cut_uplink: cli.cut_uplink.clone(),
         // As fast as possible, scans come every few milliseconds and a silent second means the
         // simulation is over; in real time (or slower) the pre-roll alone can take a second.
-        keep_apart_m: cli.keep_apart.then_some(sitl.config().separation_m),
+        // The rule keeps 10 % beyond the breach distance: it steers on the other drones'
+        // positions of the last snapshot, a tick old.
+        keep_apart_m: cli
+            .keep_apart
+            .then_some(sitl.config().separation_m * KEEP_APART_MARGIN),
         ground_idle_timeout_s: if cli.speed > 0.0 {
             (3.0 / cli.speed).max(1.0)
         } else {
