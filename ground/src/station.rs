@@ -320,6 +320,8 @@ pub struct GroundStation {
     /// The mission clock, s: advanced by each scan's step, bounded (see [`MAX_SCAN_STEP_S`]).
     clock: f64,
     clock_jumps: u64,
+    /// The first scan's mission time, s.
+    first_scan_s: Option<f64>,
 }
 
 /// The largest step between two scans' time stamps that moves the mission clock by itself:
@@ -360,6 +362,7 @@ impl GroundStation {
             daemon_heard: BTreeMap::new(),
             clock: 0.0,
             clock_jumps: 0,
+            first_scan_s: None,
             config,
         })
     }
@@ -459,15 +462,23 @@ impl GroundStation {
             }
         }
 
-        // A drone is only as recent as its daemon, once that has spoken.
+        // A drone is only as recent as its daemon, once that has spoken. What was heard before
+        // the first scan was heard before the mission clock started (at 0, while the first
+        // scan may be stamped 42 s: a real autopilot's clock): it counts as heard then.
+        let first = self.first_scan_s.get_or_insert(scan.time_s).min(now);
         let drones: Vec<DroneReport> = drones
             .iter()
-            .map(|d| match self.daemon_heard.get(&d.system_id) {
-                Some(&daemon) => DroneReport {
-                    last_heard: d.last_heard.min(daemon),
-                    ..*d
-                },
-                None => *d,
+            .map(|d| {
+                let vehicle = if d.last_heard.is_finite() {
+                    d.last_heard.max(first)
+                } else {
+                    d.last_heard
+                };
+                let last_heard = match self.daemon_heard.get(&d.system_id) {
+                    Some(&daemon) => vehicle.min(daemon.max(first)),
+                    None => vehicle,
+                };
+                DroneReport { last_heard, ..*d }
             })
             .collect();
         let plan = &self.config.plan;

@@ -11,6 +11,8 @@ use std::process::{Child, Command, Stdio};
 use skyherd_onboard::Task;
 use skyherd_sim::{Scenario, World};
 
+use crate::mission::AutopilotLink;
+
 /// Where the mission's files and programs are.
 #[derive(Clone, Debug)]
 pub struct LaunchPlan {
@@ -35,8 +37,6 @@ pub struct LaunchPlan {
     /// The daemons land after this long of stale uplink in flight (`--land-after-s`), s; 0:
     /// never.
     pub land_after_s: f64,
-    /// The autopilots' family (`--flavour`).
-    pub flavour: skyherd_link::Flavour,
     /// The daemons take off to this height (`--takeoff-alt-m`), m.
     pub takeoff_alt_m: f64,
 }
@@ -99,7 +99,7 @@ pub fn ground_command(
     cmd
 }
 
-/// Drone `index`'s daemon (system id `index + 1`): it flies the autopilot at `autopilot` and
+/// Drone `index`'s daemon (system id `index + 1`): it flies the autopilot over `autopilot` and
 /// hears the ground on `127.0.0.1:uplink_port`, on the simulator's clock. Its log goes to
 /// `daemon-{index + 1}.log` in the output folder.
 ///
@@ -109,7 +109,7 @@ pub fn daemon_command(
     plan: &LaunchPlan,
     scenario: &Scenario,
     index: usize,
-    autopilot: SocketAddr,
+    autopilot: &AutopilotLink,
     uplink_port: u16,
 ) -> io::Result<Command> {
     let log = File::create(plan.out.join(format!("daemon-{}.log", index + 1)))?;
@@ -133,13 +133,11 @@ pub fn daemon_command(
         .arg("--herder-index")
         .arg(index.to_string())
         .arg("--autopilot")
-        .arg(format!("udpout:{autopilot}"))
+        .arg(&autopilot.address)
         .arg("--ground")
         .arg(format!("udpin:127.0.0.1:{uplink_port}"))
         .arg("--key")
         .arg(plan.keys.join(KeyFolder::drone(index + 1)))
-        .arg("--autopilot-key")
-        .arg(plan.keys.join(KeyFolder::FLEET))
         .arg("--replay-state")
         .arg(plan.out.join(format!("daemon-{}.replay", index + 1)))
         .arg("--sim-clock")
@@ -148,7 +146,7 @@ pub fn daemon_command(
         .arg("--land-after-s")
         .arg(plan.land_after_s.to_string())
         .arg("--flavour")
-        .arg(match plan.flavour {
+        .arg(match autopilot.flavour {
             skyherd_link::Flavour::Px4 => "px4",
             skyherd_link::Flavour::ArduPilot => "ardupilot",
         })
@@ -156,6 +154,13 @@ pub fn daemon_command(
         .arg(plan.takeoff_alt_m.to_string())
         .stdout(Stdio::null())
         .stderr(log);
+    if autopilot.signed {
+        cmd.arg("--autopilot-key")
+            .arg(plan.keys.join(KeyFolder::FLEET));
+    }
+    if let Some([east, north]) = autopilot.local_origin {
+        cmd.arg("--local-origin").arg(format!("{east},{north}"));
+    }
     if let Some(m) = plan.keep_apart_m {
         cmd.arg("--separation-m").arg(m.to_string());
     }
@@ -238,7 +243,7 @@ impl Drop for KeyFolder {
 }
 
 /// A child process that is killed when dropped.
-#[derive(Debug)]
+#[derive(Debug, Default)]
 pub struct Guard(Option<Child>);
 
 impl Guard {

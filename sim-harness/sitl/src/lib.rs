@@ -33,6 +33,7 @@
 //! assert_eq!(node.autopilot().position_ned(), start);
 //! ```
 
+pub mod arducopter;
 pub mod autopilot;
 pub mod console;
 pub mod faults;

@@ -38,7 +38,8 @@ use skyherd_link::{Codec, Flavour, Frame, Signing};
 use skyherd_onboard::frame::{ned_to_sim, sim_to_ned};
 use thiserror::Error;
 
-use super::autopilot::{AutopilotConfig, MockAutopilot, Motion};
+use super::arducopter::{ArduCopter, ArduCopterBundle, ArduCopterOptions};
+use super::autopilot::{AutopilotConfig, Home, MockAutopilot, Motion};
 use super::faults::FaultConfig;
 use super::node::{AutopilotNode, NodeOptions};
 use super::sensor::{DetectionSensor, SensorConfig, SensorError};
@@ -104,7 +105,39 @@ pub struct SitlConfig {
     /// 0.5 m: the room preset's zoomed 4 cm is where no real drone hovers) and at most 0.5 m
     /// below the ceiling.
     pub takeoff_altitude_m: f64,
+    /// Drones flown by a real ArduCopter SITL instead of a mock ([`crate::arducopter`]).
+    pub arducopter: Option<RealDrones>,
 }
+
+/// Which drones a real ArduCopter flies, and how.
+#[derive(Clone, Debug)]
+pub struct RealDrones {
+    /// The binary and its defaults.
+    pub bundle: ArduCopterBundle,
+    /// Herder indices flown by ArduCopter (the others are mocks).
+    pub indices: Vec<usize>,
+    /// ArduCopter's simulation speed over the wall clock. The mission follows its clock.
+    pub speedup: f64,
+    /// A folder for each instance's console log (`arducopter-N.log`).
+    pub logs: Option<std::path::PathBuf>,
+}
+
+/// How a drone's daemon reaches its autopilot.
+#[derive(Clone, Debug, PartialEq)]
+pub struct AutopilotLink {
+    /// `skyherd-onboard --autopilot` address: `udpout:` a mock's socket, `udpin:` where a
+    /// real ArduCopter's SERIAL0 sends.
+    pub address: String,
+    /// Whether the link is signed with the fleet key (mocks; ArduCopter's stands for a cable).
+    pub signed: bool,
+    /// `--local-origin`: where the autopilot's home lies in the world (x east, y north), m.
+    pub local_origin: Option<[f64; 2]>,
+    /// The autopilot's family (`--flavour`).
+    pub flavour: Flavour,
+}
+
+/// How long (wall time) a tick waits for a real ArduCopter's clock before the mission fails.
+const REAL_CLOCK_TIMEOUT: Duration = Duration::from_secs(10);
 
 /// The episode starts once every drone is this close (m) below the takeoff altitude.
 pub const AIRBORNE_TOLERANCE_M: f64 = 0.15;
@@ -143,6 +176,7 @@ impl SitlConfig {
             kill_daemon: None,
             autopilot: Flavour::Px4,
             takeoff_altitude_m,
+            arducopter: None,
         }
         .with_default_separation()
     }
@@ -262,6 +296,21 @@ impl SitlConfig {
                 "the time must be a finite number of seconds >= 0",
             );
         }
+        if let Some(real) = &self.arducopter {
+            let drones = self.scenario.herder_count();
+            if real.indices.iter().any(|&i| i >= drones) {
+                return bad("arducopter", "a drone index is not among the drones");
+            }
+            if !(real.speedup.is_finite() && (0.1..=100.0).contains(&real.speedup)) {
+                return bad("arducopter", "the speedup must be 0.1 to 100");
+            }
+            if self
+                .lose_drone
+                .is_some_and(|(i, _)| real.indices.contains(&i))
+            {
+                return bad("lost drone", "a real ArduCopter cannot be cut off here");
+            }
+        }
         for (field, fault) in [
             ("lost drone", self.lose_drone),
             ("killed daemon", self.kill_daemon),
@@ -322,6 +371,10 @@ pub struct SitlWorld {
     world: World,
     scratch: StepScratch,
     nodes: Vec<Option<AutopilotNode>>,
+    /// Real ArduCopters by herder index, with their clock's offset from the world's (s).
+    real: Vec<Option<(ArduCopter, f64)>>,
+    /// The daemons' `udpin` ports of the real ones.
+    real_ports: Vec<Option<u16>>,
     sensor: DetectionSensor,
     sensor_socket: UdpSocket,
     sensor_codec: Codec,
@@ -331,6 +384,8 @@ pub struct SitlWorld {
     ending: Option<(Ending, f64)>,
     path_length: f64,
     actions: Vec<[f64; 3]>,
+    /// Where each real ArduCopter is at the tick's time, world frame.
+    real_targets: Vec<[f64; 3]>,
     /// Herder positions before the step (reused, no allocation per tick).
     before: Vec<[f64; 3]>,
     wall_start: Instant,
@@ -369,7 +424,42 @@ impl SitlWorld {
         }
         let scratch = StepScratch::with_capacity(world.targets.len());
         let mut nodes = Vec::with_capacity(world.herders.len());
+        let mut real = Vec::with_capacity(world.herders.len());
+        let mut real_ports = Vec::with_capacity(world.herders.len());
         for (i, herder) in world.herders.iter().enumerate() {
+            if let Some(drones) = config
+                .arducopter
+                .as_ref()
+                .filter(|d| d.indices.contains(&i))
+            {
+                let port = UdpSocket::bind("127.0.0.1:0")?.local_addr()?.port();
+                let options = ArduCopterOptions {
+                    system_id: i as u8 + 1,
+                    speedup: drones.speedup,
+                    serial0: ([127, 0, 0, 1], port).into(),
+                    home: Home::CMAC,
+                    origin_world: [herder[0], herder[1]],
+                    log: drones
+                        .logs
+                        .as_ref()
+                        .map(|d| d.join(format!("arducopter-{}.log", i + 1))),
+                };
+                let copter = ArduCopter::start(
+                    &drones.bundle,
+                    &options,
+                    Some((config.signing.clone(), config.ground)),
+                )
+                .map_err(|e| SitlError::Invalid {
+                    field: "arducopter",
+                    reason: e.to_string(),
+                })?;
+                nodes.push(None);
+                real.push(Some((copter, 0.0)));
+                real_ports.push(Some(port));
+                continue;
+            }
+            real.push(None);
+            real_ports.push(None);
             let mut autopilot = AutopilotConfig::for_flavour(config.autopilot, i as u8 + 1);
             autopilot.max_speed = config.scenario.limits.herder;
             autopilot.dynamics = config.dynamics.map(|limits| Motion {
@@ -401,6 +491,8 @@ impl SitlWorld {
             world,
             scratch,
             nodes,
+            real,
+            real_ports,
             sensor,
             sensor_socket,
             sensor_codec,
@@ -410,6 +502,7 @@ impl SitlWorld {
             ending: None,
             path_length: 0.0,
             actions: vec![[0.0; 3]; herders],
+            real_targets: vec![[0.0; 3]; herders],
             before: Vec::with_capacity(herders),
             wall_start: Instant::now(),
             lockstep_misses: 0,
@@ -472,12 +565,64 @@ impl SitlWorld {
         self.separation_breaches
     }
 
-    /// Each drone's autopilot address, by herder index (system id = index + 1).
-    pub fn autopilot_addresses(&self) -> Vec<SocketAddr> {
-        self.nodes
-            .iter()
-            .filter_map(|n| n.as_ref().and_then(|n| n.local_addr().ok()))
-            .collect()
+    /// How each drone's daemon reaches its autopilot, by herder index (system id = index + 1).
+    pub fn autopilot_links(&self) -> Vec<AutopilotLink> {
+        let mut links = Vec::with_capacity(self.nodes.len());
+        for (i, node) in self.nodes.iter().enumerate() {
+            if let (Some(port), Some(Some((copter, _)))) = (self.real_ports[i], self.real.get(i)) {
+                let origin = copter.to_world([0.0; 3]);
+                links.push(AutopilotLink {
+                    address: format!("udpin:127.0.0.1:{port}"),
+                    signed: false,
+                    local_origin: Some([origin[0], origin[1]]),
+                    flavour: Flavour::ArduPilot,
+                });
+            } else if let Some(addr) = node.as_ref().and_then(|n| n.local_addr().ok()) {
+                links.push(AutopilotLink {
+                    address: format!("udpout:{addr}"),
+                    signed: true,
+                    local_origin: None,
+                    flavour: self.config.autopilot,
+                });
+            }
+        }
+        links
+    }
+
+    /// Whether any drone is a real ArduCopter (the mission then follows its clock).
+    pub fn has_real_autopilots(&self) -> bool {
+        self.real.iter().any(Option::is_some)
+    }
+
+    /// Polls every real ArduCopter until each has reported a position at least as late as
+    /// world time `t` (its clock offset applied), or `timeout` of wall time passes.
+    fn follow_real_clocks(&mut self, t: f64, timeout: Duration) -> Result<(), SitlError> {
+        let start = Instant::now();
+        loop {
+            let mut behind = None;
+            for (i, slot) in self.real.iter_mut().enumerate() {
+                if let Some((copter, offset)) = slot {
+                    copter.poll()?;
+                    if copter.time_s().is_none_or(|at| at + 1e-9 < t + *offset) {
+                        behind = Some(i);
+                    }
+                }
+            }
+            let Some(i) = behind else {
+                return Ok(());
+            };
+            if start.elapsed() > timeout {
+                return Err(SitlError::Invalid {
+                    field: "arducopter",
+                    reason: format!(
+                        "drone {} reported no position for simulated time {t:.1} s within {:.0} s",
+                        i + 1,
+                        timeout.as_secs_f64()
+                    ),
+                });
+            }
+            thread::sleep(Duration::from_micros(500));
+        }
     }
 
     /// The configuration the world runs with.
@@ -548,10 +693,24 @@ impl SitlWorld {
                 node.receive_and_fly(now)?;
                 all &= node.autopilot().companion_heartbeat_at().is_some();
             }
+            // A real ArduCopter is ready once its positions flow (its EKF has an origin).
+            let mut real_clock = None;
+            for (copter, _) in self.real.iter_mut().flatten() {
+                copter.poll()?;
+                match copter.time_s() {
+                    Some(at) => real_clock = real_clock.or(Some(at)),
+                    None => all = false,
+                }
+            }
             if all {
                 // Simulated time goes on from the next whole second, not the wall time the
                 // pre-roll happened to take, so the episode's tick times are the same each run.
-                let now = now.ceil();
+                // With real ArduCopters the world runs on the first one's clock (the others'
+                // are offset), so that every process stamps time alike.
+                let now = real_clock.unwrap_or(now).ceil();
+                for (copter, offset) in self.real.iter_mut().flatten() {
+                    *offset = copter.time_s().map_or(0.0, |at| at.ceil() - now);
+                }
                 self.time_s = now;
                 self.next_scan = now;
                 for node in self.nodes.iter_mut().flatten() {
@@ -578,10 +737,35 @@ impl SitlWorld {
         {
             *slot = None;
         }
+        // 0. Real ArduCopters run free: the world waits for their clocks to pass `t`.
+        if self.has_real_autopilots() {
+            self.follow_real_clocks(t, REAL_CLOCK_TIMEOUT)?;
+        }
         // 1. Autopilots: receive and fly (they report after the world has moved, step 4).
         let (mut flying, mut armed) = (0, 0);
         let airborne = self.config.takeoff_altitude_m - AIRBORNE_TOLERANCE_M;
+        for (i, slot) in self.real.iter().enumerate() {
+            if let Some((copter, offset)) = slot {
+                let (ned, _) = copter.state_at(t + offset).unwrap_or(([0.0; 3], [0.0; 3]));
+                let target = copter.to_world(ned);
+                let here = self.world.herders[i];
+                // The velocity that takes the world's herder to where ArduCopter is at `t`.
+                self.actions[i] = [
+                    (target[0] - here[0]) / self.config.tick_s,
+                    (target[1] - here[1]) / self.config.tick_s,
+                    (target[2] - here[2]) / self.config.tick_s,
+                ];
+                self.real_targets[i] = target;
+                if copter.armed() && copter.guided() && -ned[2] >= airborne {
+                    flying += 1;
+                }
+                armed += usize::from(copter.armed());
+            }
+        }
         for (i, slot) in self.nodes.iter_mut().enumerate() {
+            if self.real[i].is_some() {
+                continue;
+            }
             self.actions[i] = match slot {
                 Some(node) => {
                     let v = ned_to_sim(node.receive_and_fly(t)?);
@@ -595,7 +779,7 @@ impl SitlWorld {
                 None => [0.0; 3],
             };
         }
-        let live = self.nodes.iter().flatten().count();
+        let live = self.nodes.iter().flatten().count() + self.real.iter().flatten().count();
         if self.flight_start.is_none() && live > 0 && flying == live {
             self.flight_start = Some(t);
             // The episode's sensor noise starts with the episode, not after however many
@@ -611,6 +795,12 @@ impl SitlWorld {
         let before = &self.before;
         if self.flight_start.is_some() {
             advance(&mut self.world, &self.actions, &mut self.scratch)?;
+            // ArduCopter's own physics decide where its herder is, to the centimetre.
+            for (i, slot) in self.real.iter().enumerate() {
+                if slot.is_some() {
+                    self.world.herders[i] = self.real_targets[i];
+                }
+            }
             for (i, slot) in self.nodes.iter_mut().enumerate() {
                 if let Some(node) = slot {
                     let p = self.world.herders[i];
@@ -628,6 +818,8 @@ impl SitlWorld {
             for (i, slot) in self.nodes.iter().enumerate() {
                 if let Some(node) = slot {
                     self.world.herders[i] = ned_to_sim(node.autopilot().position_ned());
+                } else if self.real[i].is_some() {
+                    self.world.herders[i] = self.real_targets[i];
                 }
             }
         }

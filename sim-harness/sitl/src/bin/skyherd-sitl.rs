@@ -109,6 +109,14 @@ struct Cli {
     /// fly the matching flow.
     #[arg(long, value_enum, default_value_t = AutopilotArg::Px4)]
     autopilot: AutopilotArg,
+    /// Fly these drones with a real ArduCopter SITL instead of a mock: `all`, or indices
+    /// (`0`, `0,1`). Found through SKYHERD_ARDUCOPTER, ../shared/ardupilot-sitl or
+    /// .arducopter (scripts/build-arducopter.sh). The mission then follows ArduCopter's clock.
+    #[arg(long)]
+    arducopter: Option<String>,
+    /// ArduCopter's simulation speed over the wall clock (with --arducopter).
+    #[arg(long, default_value_t = 5.0)]
+    arducopter_speedup: f64,
 }
 
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]
@@ -194,7 +202,6 @@ fn main() -> Result<std::process::ExitCode> {
             1.0
         },
         land_after_s: sitl.config().land_after_s,
-        flavour: sitl.config().autopilot,
         takeoff_alt_m: sitl.config().takeoff_altitude_m,
     };
     let uplink_ports: Vec<u16> = (0..drones)
@@ -203,23 +210,43 @@ fn main() -> Result<std::process::ExitCode> {
     let period = sitl.config().sensor_period_s;
     let ground_cmd =
         launch::ground_command(&plan, &scenario, &world, ground_addr, &uplink_ports, period);
-    let mut ground = launch::spawn(ground_cmd).context("starting skyherd-ground")?;
-    let autopilots = sitl.autopilot_addresses();
+    // The ground gives up after a second without scans; a real ArduCopter's pre-roll is
+    // longer than that, so with one the ground starts once the pre-roll is over.
+    let real = sitl.has_real_autopilots();
+    let mut ground = if real {
+        Guard::default()
+    } else {
+        launch::spawn(ground_cmd).context("starting skyherd-ground")?
+    };
+    let autopilots = sitl.autopilot_links();
     let mut daemons = Vec::new();
     for (i, port) in uplink_ports.iter().enumerate() {
-        let cmd = launch::daemon_command(&plan, &scenario, i, autopilots[i], *port)?;
+        let cmd = launch::daemon_command(&plan, &scenario, i, &autopilots[i], *port)?;
         daemons.push(
             launch::spawn(cmd)
                 .with_context(|| format!("starting the daemon {}", plan.daemon.display()))?,
         );
     }
-    if !sitl.wait_for_daemons(Duration::from_secs(30))? {
+    // A real ArduCopter's EKF needs about 42 s of its simulated time before it reports a
+    // position.
+    let pre_roll = if sitl.has_real_autopilots() { 180 } else { 30 };
+    if !sitl.wait_for_daemons(Duration::from_secs(pre_roll))? {
         bail!(
-            "the daemons did not reach their autopilots within 30 s (see {}/daemon-*.log)",
-            cli.out.display()
+            "the daemons did not reach their autopilots within {pre_roll} s (see {}/daemon-*.log{})",
+            cli.out.display(),
+            if sitl.has_real_autopilots() {
+                " and arducopter-*.log"
+            } else {
+                ""
+            }
         );
     }
 
+    if real {
+        let ground_cmd =
+            launch::ground_command(&plan, &scenario, &world, ground_addr, &uplink_ports, period);
+        ground = launch::spawn(ground_cmd).context("starting skyherd-ground")?;
+    }
     let (states, wall_s) = fly(&mut sitl, world.targets.len(), &mut ground, &mut daemons)?;
     // The ground ends on its own once it has seen the mission through; give it a moment.
     let ground_summary = read_ground_summary(&mut ground, Duration::from_secs(3));
@@ -288,6 +315,37 @@ impl Cli {
         config.time_limit_s = self.time_limit;
         config.land_after_s = self.land_after_s;
         config.kill_ground_at = self.kill_ground_at;
+        if let Some(spec) = &self.arducopter {
+            let drones = scenario.herder_count();
+            let indices: Vec<usize> = if spec.trim() == "all" {
+                (0..drones).collect()
+            } else {
+                spec.split(',')
+                    .map(|v| v.trim().parse::<usize>())
+                    .collect::<Result<_, _>>()
+                    .with_context(|| {
+                        format!(
+                            "--arducopter must be `all` or drone indices like 0,1, got {spec:?}"
+                        )
+                    })?
+            };
+            if let Some(bad) = indices.iter().find(|&&i| i >= drones) {
+                bail!("--arducopter: drone {bad} does not exist (drones are 0..{drones})");
+            }
+            if self.speed != 0.0 {
+                bail!(
+                    "--speed cannot be combined with --arducopter: the mission follows ArduCopter's clock (--arducopter-speedup)"
+                );
+            }
+            let root = std::env::current_dir().context("the working folder")?;
+            let bundle = skyherd_sitl::arducopter::ArduCopterBundle::locate(&root)?;
+            config.arducopter = Some(skyherd_sitl::mission::RealDrones {
+                bundle,
+                indices,
+                speedup: self.arducopter_speedup,
+                logs: Some(self.out.clone()),
+            });
+        }
         config.autopilot = match self.autopilot {
             AutopilotArg::Px4 => skyherd_link::Flavour::Px4,
             AutopilotArg::Ardupilot => skyherd_link::Flavour::ArduPilot,
