@@ -5,6 +5,9 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 
 PYMAVLINK_VERSION=2.4.49
+# MAVSDK's Python API with its bundled mavsdk_server (the `mavsdk` 4.1 wheel no longer bundles
+# it): the conformance test flies the mock PX4 with it.
+MAVSDK_GRPC_VERSION=4.0.5
 say() { printf 'setup: %s\n' "$*"; }
 
 # 1. The pinned Rust toolchain and its cross targets (read from rust-toolchain.toml).
@@ -52,4 +55,22 @@ if ! .venv/bin/python -c "import pymavlink, sys; sys.exit(0 if pymavlink.__versi
   .venv/bin/pip install -q --disable-pip-version-check "pymavlink==$PYMAVLINK_VERSION"
 fi
 
-say "ready (toolchain $toolchain, aarch64 + thumbv7em targets, cross gcc, qemu-aarch64, pymavlink $PYMAVLINK_VERSION)"
+if ! .venv/bin/python -c "import importlib.metadata as m, sys; sys.exit(0 if m.version('mavsdk-grpc') == '$MAVSDK_GRPC_VERSION' else 1)" >/dev/null 2>&1; then
+  say "installing mavsdk-grpc==$MAVSDK_GRPC_VERSION into .venv (MAVSDK conformance test)"
+  .venv/bin/pip install -q --disable-pip-version-check "mavsdk-grpc==$MAVSDK_GRPC_VERSION"
+fi
+
+# 4. A real ArduCopter SITL for the autopilot e2e test: SKYHERD_ARDUCOPTER, else the prebuilt
+#    one in ../shared/ardupilot-sitl, else build the same pinned commit into .arducopter/.
+if [ -n "${SKYHERD_ARDUCOPTER:-}" ] && [ -e "$SKYHERD_ARDUCOPTER" ]; then
+  say "ArduCopter SITL: $SKYHERD_ARDUCOPTER (SKYHERD_ARDUCOPTER)"
+elif [ -x ../shared/ardupilot-sitl/arducopter ]; then
+  say "ArduCopter SITL: ../shared/ardupilot-sitl/arducopter"
+elif [ -x .arducopter/arducopter ]; then
+  say "ArduCopter SITL: .arducopter/arducopter"
+else
+  say "no ArduCopter SITL found: building the pinned commit (scripts/build-arducopter.sh, ~6 min)"
+  ./scripts/build-arducopter.sh
+fi
+
+say "ready (toolchain $toolchain, aarch64 + thumbv7em targets, cross gcc, qemu-aarch64, pymavlink $PYMAVLINK_VERSION, mavsdk-grpc $MAVSDK_GRPC_VERSION, ArduCopter SITL)"

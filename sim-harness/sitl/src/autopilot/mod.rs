@@ -17,8 +17,8 @@
 //!   (param 2 = 21196: the vehicle falls). Automatic: after arming without a takeoff
 //!   (`COM_DISARM_PRFLT`, `DISARM_DELAY`), after landing (`COM_DISARM_LAND`, `DISARM_DELAY`;
 //!   at once at the end of LAND and RTL).
-//! * **External control.** PX4 accepts OFFBOARD only after setpoints streamed at > 2 Hz for
-//!   1 s and falls back to AUTO.LOITER when they stop for `COM_OF_LOSS_T`; ArduCopter accepts
+//! * **External control.** PX4 accepts OFFBOARD only while setpoints stream (the last one
+//!   at most 0.5 s old) and falls back to AUTO.LOITER when they stop for `COM_OF_LOSS_T`; ArduCopter accepts
 //!   GUIDED at any time and stops (still GUIDED) when a velocity command is older than
 //!   `GUID_TIMEOUT`. Setpoints: SET_POSITION_TARGET_LOCAL_NED in MAV_FRAME_LOCAL_NED,
 //!   LOCAL_OFFSET_NED, BODY_NED or BODY_OFFSET_NED, with any type mask that uses all three
@@ -169,9 +169,8 @@ impl AutopilotConfig {
     }
 }
 
-/// PX4 accepts OFFBOARD only after setpoints streamed this long (s)...
-pub const PX4_STREAM_BEFORE_OFFBOARD: f64 = 1.0;
-/// ...with no gap longer than this (s): i.e. faster than 2 Hz.
+/// PX4 accepts OFFBOARD only while setpoints stream: the last one at most this old (s), i.e.
+/// faster than 2 Hz. (One fresh setpoint is enough: MAVSDK sends one, then asks.)
 pub const PX4_MAX_STREAM_GAP: f64 = 0.5;
 /// Height above the floor (m) at which a descending vehicle counts as on the ground.
 pub const TOUCHDOWN_M: f64 = 0.01;
@@ -330,7 +329,6 @@ pub struct MockAutopilot {
     target: Target,
     last_setpoint: Option<f64>,
     companion_heartbeat_at: Option<f64>,
-    stream_start: Option<f64>,
     failsafe_events: u64,
     /// When (s) the last landing began (`MAV_CMD_NAV_LAND` accepted).
     landing_since: Option<f64>,
@@ -382,7 +380,6 @@ impl MockAutopilot {
             target: Target::Velocity([0.0; 3]),
             last_setpoint: None,
             companion_heartbeat_at: None,
-            stream_start: None,
             failsafe_events: 0,
             landing_since: None,
             touchdown_at: None,
@@ -807,24 +804,15 @@ impl MockAutopilot {
             self.heading = f64::from(s.yaw);
         }
         self.yaw_rate = if yaw_rate { f64::from(s.yaw_rate) } else { 0.0 };
-        // A gap longer than PX4_MAX_STREAM_GAP restarts the stream.
-        match self.last_setpoint {
-            Some(last) if now - last <= PX4_MAX_STREAM_GAP => {}
-            _ => self.stream_start = Some(now),
-        }
         self.last_setpoint = Some(now);
         if self.mode != self.config.flavour.external_mode() {
             self.rejections.outside_external_mode += 1;
         }
     }
 
-    fn streaming_long_enough(&self, now: f64) -> bool {
-        match (self.stream_start, self.last_setpoint) {
-            (Some(start), Some(last)) => {
-                now - start >= PX4_STREAM_BEFORE_OFFBOARD && now - last <= PX4_MAX_STREAM_GAP
-            }
-            _ => false,
-        }
+    fn streaming(&self, now: f64) -> bool {
+        self.last_setpoint
+            .is_some_and(|last| now - last <= PX4_MAX_STREAM_GAP)
     }
 
     fn on_command(
@@ -1034,9 +1022,7 @@ impl MockAutopilot {
                 FlightMode::ArduPilot(mode)
             }
         };
-        if flavour == Flavour::Px4
-            && requested == FlightMode::PX4_OFFBOARD
-            && !self.streaming_long_enough(now)
+        if flavour == Flavour::Px4 && requested == FlightMode::PX4_OFFBOARD && !self.streaming(now)
         {
             // PX4 refuses OFFBOARD without a live setpoint stream.
             return (

@@ -32,9 +32,46 @@ use skyherd_sitl::mission::{Ending, SitlConfig, SitlError, SitlWorld};
 #[command(
     name = "skyherd-sitl",
     version,
-    about = "Fly one SITL herding mission: simulator + ground station + one onboard daemon per drone"
+    about = "Fly one SITL herding mission: simulator + ground station + one onboard daemon per drone",
+    args_conflicts_with_subcommands = true
 )]
 struct Cli {
+    #[command(subcommand)]
+    command: Option<Sub>,
+    #[command(flatten)]
+    mission: MissionArgs,
+}
+
+#[derive(clap::Subcommand, Debug)]
+enum Sub {
+    /// Run one mock autopilot for an outside client (MAVSDK, QGroundControl, pymavlink), on
+    /// the wall clock, the way PX4's SITL does: it sends its MAVLink to the client's UDP port
+    /// on loopback (14540 is MAVSDK's default `udpin://0.0.0.0:14540`) and answers whoever
+    /// talks to it. Unsigned. Runs until killed or for --duration-s.
+    Autopilot(AutopilotArgs),
+}
+
+#[derive(clap::Args, Debug)]
+struct AutopilotArgs {
+    /// The client's UDP port on 127.0.0.1.
+    #[arg(long, default_value_t = 14540)]
+    port: u16,
+    /// Which autopilot to behave like.
+    #[arg(long, value_enum, default_value_t = AutopilotArg::Px4)]
+    autopilot: AutopilotArg,
+    /// MAVLink system id.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u8).range(1..=254))]
+    system_id: u8,
+    /// Stop after this many seconds [default: run until killed].
+    #[arg(long)]
+    duration_s: Option<f64>,
+    /// Steps per second of the state machine and its motion.
+    #[arg(long, default_value_t = 50.0)]
+    rate_hz: f64,
+}
+
+#[derive(clap::Args, Debug)]
+struct MissionArgs {
     /// Scenario preset (indoor, paper-drive, paper-collect) or TOML file.
     #[arg(long, default_value = "indoor")]
     scenario: String,
@@ -146,8 +183,65 @@ enum WindArg {
     Room,
 }
 
+/// `skyherd-sitl autopilot`: one mock on the wall clock for an outside client.
+fn run_autopilot(args: &AutopilotArgs) -> Result<std::process::ExitCode> {
+    use skyherd_sitl::{AutopilotConfig, AutopilotNode, MockAutopilot, NodeOptions};
+    if !(args.rate_hz.is_finite() && (10.0..=1000.0).contains(&args.rate_hz)) {
+        bail!("--rate-hz must be 10 to 1000, got {}", args.rate_hz);
+    }
+    if let Some(d) = args.duration_s
+        && !(d.is_finite() && d > 0.0)
+    {
+        bail!("--duration-s must be a positive number of seconds, got {d}");
+    }
+    let flavour = match args.autopilot {
+        AutopilotArg::Px4 => skyherd_link::Flavour::Px4,
+        AutopilotArg::Ardupilot => skyherd_link::Flavour::ArduPilot,
+    };
+    let client: SocketAddr = ([127, 0, 0, 1], args.port).into();
+    let autopilot = MockAutopilot::new(
+        AutopilotConfig::for_flavour(flavour, args.system_id),
+        [0.0; 3],
+        0.0,
+    );
+    let mut node = AutopilotNode::bind(
+        "127.0.0.1:0".parse().expect("literal address"),
+        autopilot,
+        NodeOptions {
+            peers: vec![client],
+            ..NodeOptions::default()
+        },
+    )
+    .context("binding the autopilot's socket")?;
+    say(format!(
+        "autopilot: {flavour:?} mock, system {}, on the ground at home, sending to {client} from {}",
+        args.system_id,
+        node.local_addr()?
+    ));
+    let start = Instant::now();
+    let period = Duration::from_secs_f64(1.0 / args.rate_hz);
+    let mut next = start;
+    loop {
+        let now = start.elapsed().as_secs_f64();
+        if args.duration_s.is_some_and(|d| now >= d) {
+            return Ok(std::process::ExitCode::SUCCESS);
+        }
+        node.step(now).context("the autopilot's socket")?;
+        next += period;
+        if let Some(rest) = next.checked_duration_since(Instant::now()) {
+            std::thread::sleep(rest);
+        } else {
+            next = Instant::now();
+        }
+    }
+}
+
 fn main() -> Result<std::process::ExitCode> {
     let cli = Cli::parse();
+    if let Some(Sub::Autopilot(args)) = &cli.command {
+        return run_autopilot(args);
+    }
+    let cli = cli.mission;
     let (scenario, seed) = cli.scenario()?;
     let ground_addr: SocketAddr = ([127, 0, 0, 1], free_udp_port()?).into();
     // Every flag is checked before anything is written or started.
@@ -274,7 +368,7 @@ fn main() -> Result<std::process::ExitCode> {
     })
 }
 
-impl Cli {
+impl MissionArgs {
     fn scenario(&self) -> Result<(Scenario, u64)> {
         let mut scenario = Scenario::from_arg(&self.scenario)
             .with_context(|| format!("loading scenario {:?}", self.scenario))?;
