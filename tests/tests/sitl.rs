@@ -244,82 +244,106 @@ fn a_terminated_sitl_leaves_no_process_behind() {
     let _ = std::fs::remove_dir_all(&out);
 }
 
+/// The autopilot flavours every link fault is flown against: the mock PX4 and the mock
+/// ArduPilot, each with the daemon's flow for it (OFFBOARD and a climb; GUIDED, NAV_TAKEOFF and
+/// a position stream request).
+const FLAVOURS: [&str; 2] = ["px4", "ardupilot"];
+
 #[test]
 fn packet_loss_and_latency_do_not_breach_the_fence() {
-    let run = fly(
-        "lossy",
-        &[
-            "--scenario",
-            "indoor",
-            "--loss",
-            "0.2",
-            "--latency-ms",
-            "200",
-            "--time-limit",
-            "30",
-        ],
-    );
-    let r = &run.result;
-    assert_ne!(r["ending"], "left_area", "{r}");
-    // Say which way it went: with 20 % loss and 200 ms latency the mission may still finish.
-    eprintln!(
-        "with 20% loss and 200 ms latency: ending {}, success {}",
-        r["ending"], r["success"]
-    );
-    assert!(
-        r["flight_start_s"].is_number(),
-        "the drones never flew: {r}"
-    );
+    for flavour in FLAVOURS {
+        let run = fly(
+            &format!("lossy-{flavour}"),
+            &[
+                "--scenario",
+                "indoor",
+                "--autopilot",
+                flavour,
+                "--loss",
+                "0.2",
+                "--latency-ms",
+                "200",
+                "--time-limit",
+                "30",
+            ],
+        );
+        let r = &run.result;
+        assert_ne!(r["ending"], "left_area", "{flavour}: {r}");
+        // Say which way it went: with 20 % loss and 200 ms latency the mission may still finish.
+        eprintln!(
+            "{flavour}, with 20% loss and 200 ms latency: ending {}, success {}",
+            r["ending"], r["success"]
+        );
+        assert!(
+            r["flight_start_s"].is_number(),
+            "{flavour}: the drones never flew: {r}"
+        );
+    }
 }
 
 #[test]
 fn a_five_second_uplink_cut_makes_the_drones_hold_then_resume() {
-    let run = fly(
-        "uplink-cut",
-        &["--scenario", "indoor", "--cut-uplink", "3,5", "--seed", "3"],
-    );
-    let r = &run.result;
-    assert_ne!(r["ending"], "left_area", "{r}");
-    for drone in 1..=2 {
-        let log = daemon_log(&run, drone);
-        let hold = log
-            .find("uplink stale")
-            .unwrap_or_else(|| panic!("drone {drone} never held for a stale uplink:\n{log}"));
-        assert!(
-            log[hold..].contains("flying"),
-            "drone {drone} did not resume after the cut:\n{log}"
+    for flavour in FLAVOURS {
+        let run = fly(
+            &format!("uplink-cut-{flavour}"),
+            &[
+                "--scenario",
+                "indoor",
+                "--autopilot",
+                flavour,
+                "--cut-uplink",
+                "3,5",
+                "--seed",
+                "3",
+            ],
         );
+        let r = &run.result;
+        assert_ne!(r["ending"], "left_area", "{flavour}: {r}");
+        for drone in 1..=2 {
+            let log = daemon_log(&run, drone);
+            let hold = log.find("uplink stale").unwrap_or_else(|| {
+                panic!("{flavour}: drone {drone} never held for a stale uplink:\n{log}")
+            });
+            assert!(
+                log[hold..].contains("flying"),
+                "{flavour}: drone {drone} did not resume after the cut:\n{log}"
+            );
+        }
+        assert!(run.stderr.contains("uplink restored"), "{flavour}");
     }
-    assert!(run.stderr.contains("uplink restored"));
 }
 
 #[test]
 fn a_lost_drone_is_noticed_and_the_other_goes_on() {
-    let run = fly(
-        "lost-drone",
-        &[
-            "--scenario",
-            "indoor",
-            "--lose-drone",
-            "1@4",
-            "--time-limit",
-            "20",
-        ],
-    );
-    let r = &run.result;
-    assert_ne!(r["ending"], "left_area", "{r}");
-    assert_eq!(
-        r["ground"]["lost_drones"],
-        serde_json::json!([2]),
-        "the ground must notice drone 2 and only it: {r}"
-    );
-    // Drone 1 kept flying after drone 2 went silent.
-    let log = daemon_log(&run, 1);
-    assert!(log.contains("flying"), "{log}");
-    eprintln!(
-        "one drone lost at t=4 s: ending {}, success {}",
-        r["ending"], r["success"]
-    );
+    for flavour in FLAVOURS {
+        let run = fly(
+            &format!("lost-drone-{flavour}"),
+            &[
+                "--scenario",
+                "indoor",
+                "--autopilot",
+                flavour,
+                "--lose-drone",
+                "1@4",
+                "--time-limit",
+                "20",
+            ],
+        );
+        let r = &run.result;
+        assert_ne!(r["ending"], "left_area", "{flavour}: {r}");
+        assert_eq!(
+            r["ground"]["lost_drones"],
+            serde_json::json!([2]),
+            "{flavour}: the ground must notice drone 2 and only it: {r}"
+        );
+        // Drone 1 kept flying after drone 2 went silent.
+        let log = daemon_log(&run, 1);
+        assert!(log.contains("flying"), "{flavour}: {log}");
+        eprintln!(
+            "{flavour}, one drone lost at t=4 s: ending {}, success {}",
+            r["ending"], r["success"]
+        );
+    }
 }
 
 /// A `kill -9` of the ground station mid-mission (`--kill-ground-at`: a real SIGKILL of the

@@ -807,6 +807,10 @@ impl MockAutopilot {
         self.last_setpoint = Some(now);
         if self.mode != self.config.flavour.external_mode() {
             self.rejections.outside_external_mode += 1;
+        } else if self.config.flavour == Flavour::ArduPilot && !self.landed() {
+            // ArduCopter: a GUIDED setpoint in the air ends a takeoff still climbing (which is
+            // why the daemon sends none until its takeoff is done).
+            self.takeoff_height = None;
         }
     }
 

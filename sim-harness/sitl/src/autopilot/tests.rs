@@ -689,3 +689,17 @@ fn global_position_follows_the_local_one() {
     assert!((global.lat - (-353_622_610)).abs() <= 2, "{}", global.lat);
     assert_eq!((global.relative_alt, global.alt), (10_000, 594_000));
 }
+
+#[test]
+fn an_ardupilot_setpoint_in_the_air_ends_its_takeoff() {
+    let mut ap = MockAutopilot::new(AutopilotConfig::ardupilot(1), [0.0; 3], 0.0);
+    ap.handle(&H, &set_mode(1, 1, FlightMode::ARDUPILOT_GUIDED), 0.0);
+    ap.handle(&H, &arm_disarm(1, 1, true), 0.0);
+    ap.handle(&H, &takeoff(1, 5.0), 0.0);
+    let t = run(&mut ap, 0.0, 1.0, None);
+    let north = velocity_setpoint_ned(1, 1, 0, [1.0, 0.0, 0.0]);
+    run(&mut ap, t, 1.0, Some(&north));
+    let p = ap.position_ned();
+    assert!(p[0] > 0.8, "flies the setpoint: {p:?}");
+    assert!(p[2] > -3.0, "no longer climbing to 5 m: {p:?}");
+}
