@@ -83,16 +83,16 @@ fn real_arducopters_fly_the_indoor_mission_through_daemon_and_ground() {
         let (system, component) = (frame.header.system_id, frame.header.component_id);
         let s = seen.entry(system).or_default();
         match &frame.message {
-            MavMessage::HEARTBEAT(hb) if component == 1 => {
-                if hb.autopilot == MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA {
-                    s.ardupilot_heartbeats += 1;
-                    if hb
-                        .base_mode
-                        .contains(MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED)
-                        && hb.custom_mode == 4
-                    {
-                        s.armed_in_guided += 1;
-                    }
+            MavMessage::HEARTBEAT(hb)
+                if component == 1 && hb.autopilot == MavAutopilot::MAV_AUTOPILOT_ARDUPILOTMEGA =>
+            {
+                s.ardupilot_heartbeats += 1;
+                if hb
+                    .base_mode
+                    .contains(MavModeFlag::MAV_MODE_FLAG_SAFETY_ARMED)
+                    && hb.custom_mode == 4
+                {
+                    s.armed_in_guided += 1;
                 }
             }
             MavMessage::LOCAL_POSITION_NED(p) if component == 1 => {

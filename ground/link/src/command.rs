@@ -157,9 +157,21 @@ impl PendingCommands {
         });
     }
 
-    /// Match an ACK from `system_id`; None if nothing was waiting for it.
-    pub fn on_ack(&mut self, system_id: u8, ack: &COMMAND_ACK_DATA) -> Option<CommandResult> {
+    /// Match an ACK from `system_id` for the requester `(own_system, own_component)`; None if
+    /// nothing was waiting for it, or if its target fields name another requester (PX4 and
+    /// ArduPilot fill them: on a link shared with the onboard daemon, the daemon's mode change
+    /// is not ours). Zero target fields (an autopilot without the MAVLink 2 extension) match.
+    pub fn on_ack(
+        &mut self,
+        system_id: u8,
+        ack: &COMMAND_ACK_DATA,
+        own: (u8, u8),
+    ) -> Option<CommandResult> {
         if ack.result == MavResult::MAV_RESULT_IN_PROGRESS {
+            return None;
+        }
+        let addressed = (ack.target_system, ack.target_component);
+        if addressed != (0, 0) && addressed != own {
             return None;
         }
         let index = self
@@ -253,10 +265,20 @@ mod tests {
         let ack = COMMAND_ACK_DATA {
             command: MavCmd::MAV_CMD_COMPONENT_ARM_DISARM,
             result: MavResult::MAV_RESULT_ACCEPTED,
+            ..Default::default()
         };
-        assert_eq!(p.on_ack(4, &ack), None); // wrong system
+        let us = (255, 190);
+        assert_eq!(p.on_ack(4, &ack, us), None); // wrong system
+        // Addressed to the drone's companion computer: its ACK, not ours.
+        let theirs = COMMAND_ACK_DATA {
+            target_system: 3,
+            target_component: 191,
+            ..ack.clone()
+        };
+        assert_eq!(p.on_ack(3, &theirs, us), None);
+        assert!(p.is_pending(3, MavCmd::MAV_CMD_COMPONENT_ARM_DISARM));
         assert_eq!(
-            p.on_ack(3, &ack).map(|r| r.outcome),
+            p.on_ack(3, &ack, us).map(|r| r.outcome),
             Some(CommandOutcome::Acked(MavResult::MAV_RESULT_ACCEPTED))
         );
         assert!(p.expire(0.5).is_empty());

@@ -353,7 +353,11 @@ impl GroundLink {
                 .on_frame(&frame.header, &frame.message, now, self.config.system_id);
             if let (MavMessage::COMMAND_ACK(ack), Ok(system_id)) =
                 (&frame.message, u8::try_from(frame.header.system_id))
-                && let Some(result) = self.commands.on_ack(system_id, ack)
+                && let Some(result) = self.commands.on_ack(
+                    system_id,
+                    ack,
+                    (self.config.system_id, self.config.component_id),
+                )
             {
                 self.results.push(result);
             }

@@ -30,10 +30,10 @@
 //!   REQUEST_AUTOPILOT_CAPABILITIES. Every one is acknowledged, with the requester's system
 //!   and component in the ACK's target fields; unknown commands are UNSUPPORTED. Every
 //!   refusal and every failsafe also says why in a STATUSTEXT.
-//! * **Telemetry.** HEARTBEAT and SYS_STATUS at the status period; PX4 also streams
+//! * **Telemetry.** HEARTBEAT at the status period. PX4 also streams SYS_STATUS,
 //!   LOCAL_POSITION_NED, GLOBAL_POSITION_INT, ATTITUDE, EXTENDED_SYS_STATE, BATTERY_STATUS and
-//!   HOME_POSITION by default; ArduCopter streams its positions only when asked
-//!   (SET_MESSAGE_INTERVAL or REQUEST_DATA_STREAM). AUTOPILOT_VERSION on request.
+//!   HOME_POSITION by default; ArduCopter (default stream rates) streams nothing else until
+//!   asked (SET_MESSAGE_INTERVAL or REQUEST_DATA_STREAM). AUTOPILOT_VERSION on request.
 //! * **Protocols.** Parameters (PARAM_REQUEST_LIST / READ / SET, values that drive the rules
 //!   above), missions (zero items; uploads other than an empty one are refused), TIMESYNC.
 
@@ -410,9 +410,10 @@ impl MockAutopilot {
             .iter()
             .map(|&id| {
                 let interval = match (config.flavour, id) {
-                    (_, ID_SYS_STATUS) => Some(config.status_period),
-                    // ArduCopter sends its positions only to a link that asked for them.
+                    // ArduCopter (default SRn_ rates) sends only its HEARTBEAT to a link that
+                    // has not asked for more.
                     (Flavour::ArduPilot, _) => None,
+                    (Flavour::Px4, ID_SYS_STATUS) => Some(config.status_period),
                     (Flavour::Px4, ID_LOCAL_POSITION_NED) => Some(position),
                     (Flavour::Px4, ID_GLOBAL_POSITION_INT) => Some(0.2),
                     (Flavour::Px4, ID_ATTITUDE) => Some(0.1),
@@ -539,151 +540,153 @@ impl MockAutopilot {
             self.companion_heartbeat_at = Some(now);
         }
         let mut replies = Vec::new();
+        // Messages addressed to a system and component: only ours (or broadcast) are served.
+        // (Commands and setpoints check for themselves, counting what is not ours.)
+        let addressed = match message {
+            MavMessage::SET_MODE(m) => Some((m.target_system, 0)),
+            MavMessage::PARAM_REQUEST_LIST(r) => Some((r.target_system, r.target_component)),
+            MavMessage::PARAM_REQUEST_READ(r) => Some((r.target_system, r.target_component)),
+            MavMessage::PARAM_SET(p) => Some((p.target_system, p.target_component)),
+            MavMessage::MISSION_REQUEST_LIST(r) => Some((r.target_system, r.target_component)),
+            MavMessage::MISSION_COUNT(c) => Some((c.target_system, c.target_component)),
+            MavMessage::MISSION_CLEAR_ALL(c) => Some((c.target_system, c.target_component)),
+            MavMessage::REQUEST_DATA_STREAM(r) => Some((r.target_system, r.target_component)),
+            _ => None,
+        };
+        if let Some((system, component)) = addressed
+            && !self.for_us(system, component)
+        {
+            return replies;
+        }
         match message {
             MavMessage::COMMAND_LONG(c) => self.on_command(header, &c.into(), now, &mut replies),
             MavMessage::COMMAND_INT(c) => self.on_command(header, &c.into(), now, &mut replies),
             MavMessage::SET_POSITION_TARGET_LOCAL_NED(s) => self.on_setpoint(s, now),
             MavMessage::SET_MODE(m) => {
-                if self.for_us(m.target_system, 0) {
-                    // The message form of DO_SET_MODE: PX4 acknowledges it as that command.
-                    let command = Command {
-                        command: MavCmd::MAV_CMD_DO_SET_MODE,
+                // The message form of DO_SET_MODE: PX4 acknowledges it as that command.
+                let command = Command {
+                    command: MavCmd::MAV_CMD_DO_SET_MODE,
+                    params: [
+                        f32::from(m.base_mode.bits()),
+                        ((m.custom_mode >> 16) & 0xFF) as f32,
+                        (m.custom_mode >> 24) as f32,
+                        0.0,
+                        0.0,
+                        0.0,
+                        0.0,
+                    ],
+                    target_system: m.target_system,
+                    target_component: 0,
+                };
+                let command = match self.config.flavour {
+                    Flavour::Px4 => command,
+                    Flavour::ArduPilot => Command {
                         params: [
-                            f32::from(m.base_mode.bits()),
-                            ((m.custom_mode >> 16) & 0xFF) as f32,
-                            (m.custom_mode >> 24) as f32,
+                            command.params[0],
+                            m.custom_mode as f32,
+                            0.0,
                             0.0,
                             0.0,
                             0.0,
                             0.0,
                         ],
-                        target_system: m.target_system,
-                        target_component: 0,
-                    };
-                    let command = match self.config.flavour {
-                        Flavour::Px4 => command,
-                        Flavour::ArduPilot => Command {
-                            params: [
-                                command.params[0],
-                                m.custom_mode as f32,
-                                0.0,
-                                0.0,
-                                0.0,
-                                0.0,
-                                0.0,
-                            ],
-                            ..command
-                        },
-                    };
-                    self.on_command(header, &command, now, &mut replies);
-                }
+                        ..command
+                    },
+                };
+                self.on_command(header, &command, now, &mut replies);
             }
-            MavMessage::PARAM_REQUEST_LIST(r) => {
-                if self.for_us(r.target_system, r.target_component) {
-                    replies.extend((0..self.params.len()).map(|i| self.param_value(i)));
-                }
+            MavMessage::PARAM_REQUEST_LIST(_) => {
+                replies.extend((0..self.params.len()).map(|i| self.param_value(i)));
             }
             MavMessage::PARAM_REQUEST_READ(r) => {
-                if self.for_us(r.target_system, r.target_component) {
-                    let index = if r.param_index >= 0 {
-                        Some(r.param_index as usize).filter(|&i| i < self.params.len())
-                    } else {
-                        let name = r.param_id.to_str().unwrap_or("");
-                        self.params.by_name(name).map(|(i, _)| i)
-                    };
-                    match index {
-                        Some(i) => replies.push(self.param_value(i)),
-                        None => {
-                            self.rejections.params_refused += 1;
-                            let name = r.param_id.to_str().unwrap_or("?").to_owned();
-                            replies.push(status_text(
-                                MavSeverity::MAV_SEVERITY_WARNING,
-                                &format!("param {name} ({}) unknown", r.param_index),
-                            ));
-                        }
+                let index = if r.param_index >= 0 {
+                    Some(r.param_index as usize).filter(|&i| i < self.params.len())
+                } else {
+                    let name = r.param_id.to_str().unwrap_or("");
+                    self.params.by_name(name).map(|(i, _)| i)
+                };
+                match index {
+                    Some(i) => replies.push(self.param_value(i)),
+                    None => {
+                        self.rejections.params_refused += 1;
+                        let name = r.param_id.to_str().unwrap_or("?").to_owned();
+                        replies.push(status_text(
+                            MavSeverity::MAV_SEVERITY_WARNING,
+                            &format!("param {name} ({}) unknown", r.param_index),
+                        ));
                     }
                 }
             }
             MavMessage::PARAM_SET(p) => {
-                if self.for_us(p.target_system, p.target_component) {
-                    let name = p.param_id.to_str().unwrap_or("").to_owned();
-                    match self.params.set(&name, p.param_value) {
-                        Ok(i) => replies.push(self.param_value(i)),
-                        Err(e) => {
-                            self.rejections.params_refused += 1;
-                            let why = match e {
-                                ParamError::Unknown => format!("param {name} unknown"),
-                                ParamError::OutOfRange { min, max } => {
-                                    format!("param {name} must be {min}..{max}")
-                                }
-                            };
-                            replies.push(status_text(MavSeverity::MAV_SEVERITY_WARNING, &why));
-                            // The value it keeps, so the sender's retry loop sees the refusal.
-                            if let Some((i, _)) = self.params.by_name(&name) {
-                                replies.push(self.param_value(i));
+                let name = p.param_id.to_str().unwrap_or("").to_owned();
+                match self.params.set(&name, p.param_value) {
+                    Ok(i) => replies.push(self.param_value(i)),
+                    Err(e) => {
+                        self.rejections.params_refused += 1;
+                        let why = match e {
+                            ParamError::Unknown => format!("param {name} unknown"),
+                            ParamError::OutOfRange { min, max } => {
+                                format!("param {name} must be {min}..{max}")
                             }
+                        };
+                        replies.push(status_text(MavSeverity::MAV_SEVERITY_WARNING, &why));
+                        // The value it keeps, so the sender's retry loop sees the refusal.
+                        if let Some((i, _)) = self.params.by_name(&name) {
+                            replies.push(self.param_value(i));
                         }
                     }
                 }
             }
             MavMessage::MISSION_REQUEST_LIST(r) => {
-                if self.for_us(r.target_system, r.target_component) {
-                    replies.push(MavMessage::MISSION_COUNT(MISSION_COUNT_DATA {
-                        count: 0,
-                        target_system: header.system_id as u8,
-                        target_component: header.component_id as u8,
-                        mission_type: r.mission_type,
-                        opaque_id: 0,
-                    }));
-                }
+                replies.push(MavMessage::MISSION_COUNT(MISSION_COUNT_DATA {
+                    count: 0,
+                    target_system: header.system_id as u8,
+                    target_component: header.component_id,
+                    mission_type: r.mission_type,
+                    opaque_id: 0,
+                }));
             }
             MavMessage::MISSION_COUNT(c) => {
-                if self.for_us(c.target_system, c.target_component) {
-                    let result = if c.count == 0 {
-                        MavMissionResult::MAV_MISSION_ACCEPTED
-                    } else {
-                        replies.push(status_text(
-                            MavSeverity::MAV_SEVERITY_WARNING,
-                            "mission upload refused: this vehicle flies no missions",
-                        ));
-                        MavMissionResult::MAV_MISSION_UNSUPPORTED
-                    };
-                    replies.push(mission_ack(header, result, c.mission_type));
-                }
+                let result = if c.count == 0 {
+                    MavMissionResult::MAV_MISSION_ACCEPTED
+                } else {
+                    replies.push(status_text(
+                        MavSeverity::MAV_SEVERITY_WARNING,
+                        "mission upload refused: this vehicle flies no missions",
+                    ));
+                    MavMissionResult::MAV_MISSION_UNSUPPORTED
+                };
+                replies.push(mission_ack(header, result, c.mission_type));
             }
             MavMessage::MISSION_CLEAR_ALL(c) => {
-                if self.for_us(c.target_system, c.target_component) {
-                    replies.push(mission_ack(
-                        header,
-                        MavMissionResult::MAV_MISSION_ACCEPTED,
-                        c.mission_type,
-                    ));
-                }
+                replies.push(mission_ack(
+                    header,
+                    MavMissionResult::MAV_MISSION_ACCEPTED,
+                    c.mission_type,
+                ));
             }
             MavMessage::TIMESYNC(t) if t.tc1 == 0 => {
                 replies.push(MavMessage::TIMESYNC(TIMESYNC_DATA {
                     tc1: ((now - self.boot_time).max(0.0) * 1e9) as i64,
                     ts1: t.ts1,
                     target_system: header.system_id as u8,
-                    target_component: header.component_id as u8,
+                    target_component: header.component_id,
                 }));
             }
             MavMessage::REQUEST_DATA_STREAM(r) => {
-                if self.for_us(r.target_system, r.target_component) {
-                    let ids: &[u32] = match r.req_stream_id {
-                        MavDataStream::MAV_DATA_STREAM_ALL => &STREAMABLE,
-                        MavDataStream::MAV_DATA_STREAM_POSITION => {
-                            &[ID_LOCAL_POSITION_NED, ID_GLOBAL_POSITION_INT]
-                        }
-                        MavDataStream::MAV_DATA_STREAM_EXTRA1 => &[ID_ATTITUDE],
-                        MavDataStream::MAV_DATA_STREAM_EXTENDED_STATUS => &[ID_SYS_STATUS],
-                        _ => &[],
-                    };
-                    let interval = (r.start_stop != 0 && r.req_message_rate > 0)
-                        .then(|| 1.0 / f64::from(r.req_message_rate));
-                    for &id in ids {
-                        self.set_stream(id, interval, now);
+                let ids: &[u32] = match r.req_stream_id {
+                    MavDataStream::MAV_DATA_STREAM_ALL => &STREAMABLE,
+                    MavDataStream::MAV_DATA_STREAM_POSITION => {
+                        &[ID_LOCAL_POSITION_NED, ID_GLOBAL_POSITION_INT]
                     }
+                    MavDataStream::MAV_DATA_STREAM_EXTRA1 => &[ID_ATTITUDE],
+                    MavDataStream::MAV_DATA_STREAM_EXTENDED_STATUS => &[ID_SYS_STATUS],
+                    _ => &[],
+                };
+                let interval = (r.start_stop != 0 && r.req_message_rate > 0)
+                    .then(|| 1.0 / f64::from(r.req_message_rate));
+                for &id in ids {
+                    self.set_stream(id, interval, now);
                 }
             }
             _ => {}
@@ -843,7 +846,7 @@ impl MockAutopilot {
             progress: 0,
             result_param2: 0,
             target_system: header.system_id as u8,
-            target_component: header.component_id as u8,
+            target_component: header.component_id,
         });
         // The acknowledgement first, then what was asked for (AUTOPILOT_VERSION, ...).
         replies.insert(0, ack);
@@ -951,8 +954,8 @@ impl MockAutopilot {
                     return (DENIED, Some(format!("no stream of message {}", p[0])));
                 }
                 let interval = match p[1] {
-                    x if x == -1.0 => None,
-                    x if x == 0.0 => Self::default_streams(&self.config, now)
+                    -1.0 => None,
+                    0.0 => Self::default_streams(&self.config, now)
                         .iter()
                         .find(|s| s.id == id)
                         .and_then(|s| s.interval)
@@ -1538,7 +1541,7 @@ fn mission_ack(
 ) -> MavMessage {
     MavMessage::MISSION_ACK(MISSION_ACK_DATA {
         target_system: header.system_id as u8,
-        target_component: header.component_id as u8,
+        target_component: header.component_id,
         mavtype: result,
         mission_type,
         opaque_id: 0,
