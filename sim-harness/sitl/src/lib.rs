@@ -7,7 +7,10 @@
 //! clock (lockstep): whoever owns the loop steps the world, then each node with the same
 //! `now`.
 //!
-//! * [`autopilot`]: the pure [`MockAutopilot`] state machine (PX4 / ArduPilot rules).
+//! * [`autopilot`]: the pure [`MockAutopilot`] state machine (PX4 / ArduPilot rules, see
+//!   `docs/autopilots.md`).
+//! * [`arducopter`]: a real ArduCopter SITL as one of a mission's drones, its clock and
+//!   position followed.
 //! * [`node`]: [`AutopilotNode`], its UDP shell (one socket per drone, optional signing and
 //!   faults).
 //! * [`sensor`]: [`DetectionSensor`], noisy anonymous detections from true positions.
@@ -21,7 +24,8 @@
 //! use skyherd_onboard::frame::sim_to_ned;
 //!
 //! let start = sim_to_ned([10.0_f64, 20.0, 2.0]); // 10 m east, 20 m north, 2 m up
-//! let autopilot = MockAutopilot::new(AutopilotConfig::px4(1), start, 0.0);
+//! // Already flying (armed, holding); `MockAutopilot::new` starts one on the ground.
+//! let autopilot = MockAutopilot::new_flying(AutopilotConfig::px4(1), start, 0.0);
 //! let mut node = AutopilotNode::bind("127.0.0.1:0".parse().unwrap(), autopilot,
 //!     NodeOptions::default()).unwrap();
 //! let mut now = 0.0;
