@@ -207,6 +207,8 @@ pub struct MissionResult {
     pub landing_start_s: Vec<Option<f64>>,
     /// Each drone's touchdown time, simulated s, by herder index (null: did not land).
     pub touchdown_s: Vec<Option<f64>>,
+    /// What was outside the arena when the mission ended there (`herder N`, `target N`).
+    pub left_area: Vec<String>,
 }
 
 impl MissionResult {
@@ -221,6 +223,9 @@ impl MissionResult {
         };
         let outcome = match (self.success, self.ending) {
             (true, _) => "success".to_string(),
+            (false, Some(e)) if !self.left_area.is_empty() => {
+                format!("failed: {} ({})", ending_text(e), self.left_area.join(", "))
+            }
             (false, Some(e)) => format!("failed: {}", ending_text(e)),
             (false, None) => "unfinished".to_string(),
         };
@@ -402,6 +407,7 @@ mod tests {
             drones_landed: 0,
             landing_start_s: vec![None, None],
             touchdown_s: vec![None, None],
+            left_area: Vec::new(),
         };
         let table = result.table();
         assert!(table.contains("outcome       success"), "{table}");
@@ -435,6 +441,7 @@ mod tests {
             drones_landed: 2,
             landing_start_s: vec![Some(23.1), Some(23.1)],
             touchdown_s: vec![Some(25.9), Some(26.1)],
+            left_area: Vec::new(),
             ..failed
         };
         let table = killed.table();

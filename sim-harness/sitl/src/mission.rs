@@ -399,6 +399,8 @@ pub struct SitlWorld {
     separation_breaches: u64,
     /// When the ground station exited, s, and how (its exit status, in words).
     ground_exit: Option<(f64, String)>,
+    /// What was outside the arena when the episode ended there.
+    left_area: Vec<String>,
 }
 
 impl std::fmt::Debug for SitlWorld {
@@ -513,6 +515,7 @@ impl SitlWorld {
             min_separation_m: f64::INFINITY,
             separation_breaches: 0,
             ground_exit: None,
+            left_area: Vec::new(),
         })
     }
 
@@ -535,6 +538,12 @@ impl SitlWorld {
         if self.ending.is_none() {
             self.ending = Some((Ending::GroundExited, self.time_s));
         }
+    }
+
+    /// What was outside the arena (`herder N`, `target N`, 1-based) when the episode ended
+    /// there; empty otherwise.
+    pub fn left_area(&self) -> &[String] {
+        &self.left_area
     }
 
     /// When the ground station exited, s, and how.
@@ -873,6 +882,23 @@ impl SitlWorld {
         if self.ending.is_none() {
             if self.world.anything_outside() {
                 self.ending = Some((Ending::LeftArea, t));
+                let area = self.world.area;
+                self.left_area = self
+                    .world
+                    .herders
+                    .iter()
+                    .enumerate()
+                    .filter(|(_, h)| !area.contains_xy([h[0], h[1]]))
+                    .map(|(i, _)| format!("herder {}", i + 1))
+                    .chain(
+                        self.world
+                            .targets
+                            .iter()
+                            .enumerate()
+                            .filter(|(_, p)| !area.contains_xy(**p))
+                            .map(|(i, _)| format!("target {}", i + 1)),
+                    )
+                    .collect();
             } else if self.world.all_targets_in_goal() {
                 self.ending = Some((Ending::Success, t));
             } else if self

@@ -684,6 +684,7 @@ fn mission_result(
         drones_landed: touchdown_s.iter().flatten().count(),
         landing_start_s: sitl.landing_starts(),
         touchdown_s,
+        left_area: sitl.left_area().to_vec(),
     }
 }
 
