@@ -33,7 +33,7 @@ use crate::policy::{Policy, act_all};
 use crate::reward::{RewardParams, RewardTerms, StepFacts, reward};
 use crate::scenario::{Scenario, ScenarioError};
 use crate::task::{lower_bound_time, spawn};
-use crate::world::{StepScratch, World, WorldError, advance, dist2};
+use crate::world::{StepScratch, World, WorldError, advance, closest_pair_m, dist2};
 
 /// What one step produced.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
@@ -348,6 +348,9 @@ pub struct EpisodeSummary {
     pub return_total: f64,
     /// Sum of the paper's rewards.
     pub paper_return_total: f64,
+    /// The closest two herders came (3-D, m) after any step (the spawn is not counted: it is
+    /// not theirs to choose); infinity with one herder.
+    pub min_separation_m: f64,
 }
 
 /// Runs one episode of `env` from `seed` under `policy`; `on_step` sees the true world after
@@ -361,10 +364,14 @@ pub fn run_episode(
     let first = env.reset(seed);
     policy.reset(first, seed);
     on_step(env.world(), None);
+    // In flight: where the herders spawn is not theirs to choose, so the first measurement is
+    // after their first step.
+    let mut min_separation_m = f64::INFINITY;
     let mut actions = Vec::with_capacity(env.world().herders.len());
     let last = loop {
         act_all(policy, env.observation(), &mut actions);
         let out = env.step(&actions)?;
+        min_separation_m = min_separation_m.min(closest_pair_m(&env.world().herders));
         on_step(env.world(), Some(&out));
         if out.terminated || out.truncated {
             break out;
@@ -381,6 +388,7 @@ pub fn run_episode(
         lower_bound_s: info.lower_bound_s,
         return_total: info.return_total,
         paper_return_total: info.paper_return_total,
+        min_separation_m,
     })
 }
 

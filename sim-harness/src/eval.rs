@@ -181,6 +181,14 @@ pub struct ConfigResult {
     pub mean_time_ratio: Option<f64>,
     /// Mean total herder path length of all episodes, metres.
     pub mean_path_all_m: f64,
+    /// The closest two herders came in any episode (3-D, m); `None` with one herder (and in
+    /// results written before it was measured).
+    #[serde(default)]
+    pub min_separation_m: Option<f64>,
+    /// Episodes in which two herders came closer than the arena's breach distance
+    /// (`Area::breach_distance_m`: 0.5 m in a room, 3 m in the paper's arena).
+    #[serde(default)]
+    pub separation_breach_episodes: usize,
 }
 
 /// Why a sweep failed.
@@ -225,6 +233,16 @@ pub fn summarize(config: EvalConfig, scenario: &Scenario, eps: &[EpisodeSummary]
         } else {
             eps.iter().map(|e| e.path_length).sum::<f64>() / eps.len() as f64
         },
+        min_separation_m: Some(
+            eps.iter()
+                .map(|e| e.min_separation_m)
+                .fold(f64::INFINITY, f64::min),
+        )
+        .filter(|d| d.is_finite()),
+        separation_breach_episodes: eps
+            .iter()
+            .filter(|e| e.min_separation_m < scenario.area.breach_distance_m())
+            .count(),
         config,
     }
 }
@@ -295,11 +313,11 @@ fn opt(v: Option<f64>, digits: usize) -> String {
 /// CSV with a header row.
 pub fn to_csv(results: &[ConfigResult]) -> String {
     let mut out = String::from(
-        "task,method,herders,herder_count,targets,episodes,step_limit,successes,left_area,success_rate,mean_time_s,mean_path_m,mean_time_ratio,mean_path_all_m\n",
+        "task,method,herders,herder_count,targets,episodes,step_limit,successes,left_area,success_rate,mean_time_s,mean_path_m,mean_time_ratio,mean_path_all_m,min_separation_m,separation_breach_episodes\n",
     );
     for r in results {
         out.push_str(&format!(
-            "{},{},{},{},{},{},{},{},{},{:.4},{},{},{},{:.1}\n",
+            "{},{},{},{},{},{},{},{},{},{:.4},{},{},{},{:.1},{},{}\n",
             task_name(r.config.task),
             r.config.method,
             r.config.herders.0,
@@ -314,6 +332,8 @@ pub fn to_csv(results: &[ConfigResult]) -> String {
             opt(r.mean_path_m, 1),
             opt(r.mean_time_ratio, 2),
             r.mean_path_all_m,
+            opt(r.min_separation_m, 2),
+            r.separation_breach_episodes,
         ));
     }
     out
@@ -546,6 +566,7 @@ mod tests {
                 lower_bound_s: 50.0,
                 return_total: 0.0,
                 paper_return_total: 0.0,
+                min_separation_m: f64::INFINITY,
             };
             let eps: Vec<EpisodeSummary> = (0..4).map(ep).collect();
             let cfg = EvalConfig {
@@ -591,6 +612,7 @@ mod tests {
             lower_bound_s: 50.0,
             return_total: 0.0,
             paper_return_total: 0.0,
+            min_separation_m: 2.0 + time_s / 1000.0,
         };
         let cfg = EvalConfig {
             task: Task::Driving,
@@ -612,6 +634,9 @@ mod tests {
         assert_eq!(r.mean_path_m, Some(2000.0));
         assert_eq!(r.mean_time_ratio, Some(3.0));
         assert_eq!(r.left_area, 1);
+        // Closest approach over all episodes (2.007 m); the paper's arena breaches below 3 m.
+        assert_eq!(r.min_separation_m, Some(2.007));
+        assert_eq!(r.separation_breach_episodes, 3);
         let md = to_markdown(std::slice::from_ref(&r));
         assert!(
             md.contains("| driving | 4 | 16 | 67% | 150 | 2000 | 3.00 |"),
@@ -624,5 +649,6 @@ mod tests {
                 .unwrap()
                 .starts_with("driving,x,4,4,16,3,1500,2,1,0.6667,150.0,2000.0,3.00")
         );
+        assert!(csv.lines().nth(1).unwrap().ends_with(",2.01,3"), "{csv}");
     }
 }

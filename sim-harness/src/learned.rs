@@ -30,6 +30,11 @@ use skyherd_model::{FloatActor, FormatError, Task};
 use skyherd_onboard::actor::Actor;
 use skyherd_onboard::obs::FEATURES;
 use skyherd_onboard::safety::{self, Limits, Situation};
+use skyherd_onboard::separation::{Peer, SeparationConfig, separate};
+
+/// The separation rule keeps this much beyond the breach distance (as `skyherd-sitl
+/// --keep-apart` does): it steers on the others' last step.
+pub const KEEP_APART_MARGIN: f32 = 1.1;
 
 use crate::obs::EncoderBuffers;
 use crate::policy::{Policy, PolicyFactory};
@@ -68,6 +73,14 @@ pub struct ActorPolicy<A> {
     features: [f32; FEATURES],
     /// Whether the daemon's flight rules apply (see [`ActorPolicy::flying`]).
     flight_rules: bool,
+    /// Whether the daemon's separation rule applies (see [`ActorPolicy::keeping_apart`]).
+    keep_apart: bool,
+    /// Herder positions of the last step seen and that step, for the peers' velocities.
+    previous: Option<(u64, Vec<[f64; 3]>)>,
+    /// Each herder's velocity over the last step, m/s (zero at the start).
+    velocities: Vec<[f32; 3]>,
+    /// Scratch for the separation rule's peers.
+    peers: Vec<Peer>,
     /// Every encoded observation is appended here when recording (for calibration and parity).
     pub recorded: Option<Vec<(Task, [f32; FEATURES])>>,
 }
@@ -81,8 +94,58 @@ impl<A: Infer> ActorPolicy<A> {
             loaded_step: None,
             features: [0.0; FEATURES],
             flight_rules: false,
+            keep_apart: false,
+            previous: None,
+            velocities: Vec::new(),
+            peers: Vec::new(),
             recorded: None,
         }
+    }
+
+    /// The same, with the daemon's separation rule (`skyherd_onboard::separation`, as
+    /// `skyherd-onboard --separation-m` runs it) before the flight rules: each herder keeps
+    /// 10 % beyond the arena's breach distance (`Area::breach_distance_m`) from the others,
+    /// whose velocities it takes from their last step, as the daemon does from two snapshots.
+    pub fn keeping_apart(mut self, keep_apart: bool) -> Self {
+        self.keep_apart = keep_apart;
+        self
+    }
+
+    /// The separation rule's settings for `world`: the room's (0.5 m) or the arena's (3 m).
+    fn separation(world: &World) -> SeparationConfig {
+        let breach = world.area.breach_distance_m() as f32;
+        let base = if breach <= 1.0 {
+            SeparationConfig::room()
+        } else {
+            SeparationConfig::arena()
+        };
+        SeparationConfig {
+            min_separation: breach * KEEP_APART_MARGIN,
+            peer_speed_bound: world.limits.herder as f32,
+            ..base
+        }
+    }
+
+    /// Each herder's velocity over the step that led to `world`.
+    fn track_velocities(&mut self, world: &World) {
+        self.velocities.clear();
+        match &self.previous {
+            Some((step, before))
+                if *step + 1 == world.step && before.len() == world.herders.len() =>
+            {
+                let dt = world.dt.max(f64::MIN_POSITIVE);
+                self.velocities
+                    .extend(before.iter().zip(&world.herders).map(|(a, b)| {
+                        [
+                            ((b[0] - a[0]) / dt) as f32,
+                            ((b[1] - a[1]) / dt) as f32,
+                            ((b[2] - a[2]) / dt) as f32,
+                        ]
+                    }));
+            }
+            _ => self.velocities.resize(world.herders.len(), [0.0; 3]),
+        }
+        self.previous = Some((world.step, world.herders.clone()));
     }
 
     /// Wraps `actor` as the onboard daemon flies it: the encoder reads the drone's height above
@@ -115,6 +178,10 @@ impl<A: Infer> Policy for ActorPolicy<A> {
     fn reset(&mut self, world: &World, _seed: u64) {
         self.buffers.fill(world);
         self.loaded_step = Some(world.step);
+        self.previous = None;
+        if self.keep_apart {
+            self.track_velocities(world);
+        }
     }
 
     fn act(&mut self, world: &World, herder: usize) -> [f64; 3] {
@@ -123,6 +190,9 @@ impl<A: Infer> Policy for ActorPolicy<A> {
         if herder == 0 || self.loaded_step != Some(world.step) {
             self.buffers.fill(world);
             self.loaded_step = Some(world.step);
+            if self.keep_apart && self.previous.as_ref().is_none_or(|(s, _)| *s != world.step) {
+                self.track_velocities(world);
+            }
         }
         let limits = self.flight_rules.then(|| {
             let a = world.area;
@@ -150,6 +220,25 @@ impl<A: Infer> Policy for ActorPolicy<A> {
                 frame.action_to_world(self.actor.infer(world.task, &self.features))
             }
             Err(_) => [0.0; 3],
+        };
+        // Keep apart first; the flight rules still have the last word (as in the daemon).
+        let request = match own {
+            Some(position) if self.keep_apart && encoded.is_ok() => {
+                let config = Self::separation(world);
+                self.peers.clear();
+                for (i, p) in world.herders.iter().enumerate() {
+                    if i != herder {
+                        self.peers.push(Peer {
+                            position: p.map(|c| c as f32),
+                            velocity: self.velocities.get(i).copied().unwrap_or([0.0; 3]),
+                            age_s: 0.0,
+                        });
+                    }
+                }
+                let velocity = self.velocities.get(herder).copied().unwrap_or([0.0; 3]);
+                separate(&config, position, velocity, request, &self.peers).velocity
+            }
+            _ => request,
         };
         match (limits, own) {
             (Some(l), Some(position)) => safety::check(
@@ -215,6 +304,7 @@ impl std::error::Error for ModelPolicyError {
 pub struct ModelPolicy {
     name: String,
     actor: Actor<'static>,
+    keep_apart: bool,
 }
 
 impl ModelPolicy {
@@ -243,7 +333,16 @@ impl ModelPolicy {
         Ok(ModelPolicy {
             name,
             actor: Actor::from_bytes(bytes)?,
+            keep_apart: false,
         })
+    }
+
+    /// The same model with the daemon's separation rule on ([`ActorPolicy::keeping_apart`]);
+    /// its name in reports gets `+apart`.
+    pub fn keeping_apart(mut self) -> Self {
+        self.keep_apart = true;
+        self.name.push_str("+apart");
+        self
     }
 
     /// The onboard actor.
@@ -258,13 +357,14 @@ impl PolicyFactory for ModelPolicy {
     }
 
     fn make(&self) -> Box<dyn Policy + Send> {
-        Box::new(ActorPolicy::flying(self.actor))
+        Box::new(ActorPolicy::flying(self.actor).keeping_apart(self.keep_apart))
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::world::closest_pair_m;
     use crate::{Env, HerderCount, Scenario};
 
     /// "Full speed forward, up" whatever the observation.
@@ -309,6 +409,34 @@ mod tests {
         world.goal.center = [400.0, 251.0];
         world.herders = vec![at];
         world
+    }
+
+    #[test]
+    fn keeping_apart_opens_two_herders_to_the_breach_distance() {
+        // Two herders 1 m apart, both flying "forward" at the flock: without the rule they
+        // stay 1 m apart; with it they open past the arena's 3 m and stay there.
+        let fly = |keep_apart: bool| {
+            let mut world = herder_at([200.0, 251.0, 2.0]);
+            world.herders = vec![[200.0, 250.5, 2.0], [200.0, 251.5, 2.0]];
+            let mut policy = ActorPolicy::flying(Forward).keeping_apart(keep_apart);
+            policy.reset(&world, 0);
+            let mut closest = f64::INFINITY;
+            for _ in 0..8 {
+                let actions: Vec<[f64; 3]> = (0..2).map(|h| policy.act(&world, h)).collect();
+                for (p, v) in world.herders.iter_mut().zip(&actions) {
+                    for k in 0..3 {
+                        p[k] += v[k] * world.dt;
+                    }
+                }
+                world.step += 1;
+                closest = closest_pair_m(&world.herders);
+            }
+            closest
+        };
+        let bare = fly(false);
+        assert!(bare < 1.5, "without the rule they stay close: {bare} m");
+        let apart = fly(true);
+        assert!(apart >= 3.0, "with it they open past 3 m: {apart} m");
     }
 
     #[test]

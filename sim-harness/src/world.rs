@@ -47,6 +47,28 @@ impl Area {
     pub fn contains_xy(&self, p: [f64; 2]) -> bool {
         p[0] >= 0.0 && p[0] <= self.width && p[1] >= 0.0 && p[1] <= self.depth
     }
+
+    /// How close two drones may come (3-D, m) before it counts as a separation breach: 0.5 m
+    /// in a room-sized arena (50 m or less across: small indoor drones), 3 m otherwise.
+    pub fn breach_distance_m(&self) -> f64 {
+        if self.width.max(self.depth) <= 50.0 {
+            0.5
+        } else {
+            3.0
+        }
+    }
+}
+
+/// The smallest 3-D distance between two of `herders`, m (infinity with fewer than two).
+pub fn closest_pair_m(herders: &[[f64; 3]]) -> f64 {
+    let mut closest = f64::INFINITY;
+    for (i, a) in herders.iter().enumerate() {
+        for b in &herders[i + 1..] {
+            let d = ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2) + (a[2] - b[2]).powi(2)).sqrt();
+            closest = closest.min(d);
+        }
+    }
+    closest
 }
 
 /// The goal circle on the ground.

@@ -69,9 +69,10 @@ fn daemon_log(run: &Run, drone: usize) -> String {
 }
 
 /// The paper's indoor test through the full MAVLink loop: the paper's drones finish within 30 s,
-/// and so must ours on the preset's seed (0). The mission's model, mtddpg-v3, takes 29.3 s on
-/// seed 0 here (25.8-39.7 s on seeds 0-15, median 29.25 s); mtddpg-v1 takes 28.2 s (23.5-61.5
-/// s, median 29.4 s), mtddpg-v1 before its second evolution stage 32.0 s, the Lama clone 57 s.
+/// and so must ours on the preset's seed (0). The mission's model, mtddpg-v3, takes 29.1 s on
+/// seed 0 from take-off (the drones start on the floor). Before they did, it took 29.3 s
+/// (25.8-39.7 s on seeds 0-15, median 29.25 s); mtddpg-v1 28.2 s (23.5-61.5 s, median 29.4 s),
+/// mtddpg-v1 before its second evolution stage 32.0 s, the Lama clone 57 s.
 /// The lockstep loop is deterministic: a second run of the seed
 /// must give the same mission to the decimetre, so this bound is not a matter of luck.
 #[test]
@@ -127,8 +128,8 @@ fn indoor_two_drones_drive_four_vehicles_to_the_goal_reproducibly() {
 }
 
 /// With `--keep-apart` the daemons run the reciprocal separation rule: the two indoor drones,
-/// which come within 0.09 m of each other without it, never come within 0.5 m, and the
-/// mission still succeeds (slower: 39.1 s against 29.3 s on seed 0, the model was not trained
+/// which come within 0.05 m of each other without it, never come within 0.5 m, and the
+/// mission still succeeds (slower: 42.2 s against 29.1 s on seed 0, the model was not trained
 /// with the rule).
 #[test]
 fn kept_apart_the_indoor_drones_never_breach_half_a_metre() {

@@ -182,12 +182,7 @@ impl SitlConfig {
     }
 
     fn with_default_separation(mut self) -> Self {
-        let a = &self.scenario.area;
-        self.separation_m = if a.width.max(a.depth) <= 50.0 {
-            0.5
-        } else {
-            3.0
-        };
+        self.separation_m = self.scenario.area.breach_distance_m();
         self
     }
 }

@@ -128,6 +128,12 @@ struct EvalArgs {
     /// Print the summary of the single configuration as JSON on stdout.
     #[arg(long)]
     json: bool,
+    /// Model files fly with the daemon's separation rule (`skyherd_onboard::separation`,
+    /// 10 % beyond the breach distance: 0.5 m in a room, 3 m in the arena) before its flight
+    /// rules; reported as `NAME+apart`. Every result reports the closest approach and the
+    /// episodes that breached, with or without it.
+    #[arg(long)]
+    keep_apart: bool,
 }
 
 #[derive(clap::Args, Debug)]
@@ -174,8 +180,18 @@ struct ScenarioArgs {
 /// The policies the command line knows: a baseline by name, or `model:PATH`, a quantized model file
 /// run through the onboard actor as it flies.
 fn policy_factory(name: &str) -> Result<Arc<dyn PolicyFactory>> {
+    policy_factory_apart(name, false)
+}
+
+/// The same; `keep_apart`: model files fly with the daemon's separation rule too.
+fn policy_factory_apart(name: &str, keep_apart: bool) -> Result<Arc<dyn PolicyFactory>> {
     if let Some(path) = name.strip_prefix("model:") {
-        return Ok(Arc::new(ModelPolicy::from_file(path.as_ref())?));
+        let model = ModelPolicy::from_file(path.as_ref())?;
+        return Ok(Arc::new(if keep_apart {
+            model.keeping_apart()
+        } else {
+            model
+        }));
     }
     let method: Method = name
         .parse()
@@ -232,6 +248,7 @@ fn eval_command(args: EvalArgs) -> Result<()> {
         out_dir,
         plots,
         json,
+        keep_apart,
     } = args;
     let spec = SweepSpec {
         tasks: tasks
@@ -240,7 +257,7 @@ fn eval_command(args: EvalArgs) -> Result<()> {
             .collect::<Result<_>>()?,
         methods: methods
             .iter()
-            .map(|m| policy_factory(m))
+            .map(|m| policy_factory_apart(m, keep_apart))
             .collect::<Result<_>>()?,
         herders,
         targets,

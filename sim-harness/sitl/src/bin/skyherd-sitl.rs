@@ -162,8 +162,9 @@ enum AutopilotArg {
     Ardupilot,
 }
 
-/// `--keep-apart`: the daemons' separation distance over the breach distance.
-const KEEP_APART_MARGIN: f64 = 1.1;
+/// `--keep-apart`: the daemons' separation distance over the breach distance (the same as
+/// `skyherd-sim eval --keep-apart`).
+const KEEP_APART_MARGIN: f64 = skyherd_sim::learned::KEEP_APART_MARGIN as f64;
 
 /// The exit status of a mission that ran but did not succeed (1 is an error before or during
 /// the run): scripts can tell a failed mission from a broken one.
