@@ -12,7 +12,9 @@
 //! 3. **Fence** (a box; z bounds are the altitude band), per axis, only with a finite position:
 //!    outside a bound, the velocity along that axis points back in at least
 //!    `return_speed`; inside, it is trimmed so that `position + velocity * lookahead_s` stays
-//!    inside. Steering back in happens while holding too; steering out never happens.
+//!    inside and, with [`Limits::braking`], so that a vehicle flying it can still stop before
+//!    the bound (it needs `v * lag + v^2 / (2 a)`). Steering back in happens while holding too;
+//!    steering out never happens.
 //! 4. **Speed**: `|v_z| <= max_vertical_speed`, then `|v| <= max_speed`, by scaling, which keeps
 //!    every component's sign and so never undoes rule 3's direction.
 //!
@@ -22,7 +24,7 @@
 //! // Below the altitude band, asked to fly down at 20 m/s on a stale snapshot:
 //! let d = check(&limits, &Situation {
 //!     position: [250.0, 250.0, 0.1], velocity: [0.0, 0.0, -20.0],
-//!     snapshot_age_s: 3.0, snapshot_finite: true,
+//!     snapshot_age_s: 3.0, snapshot_finite: true, current_velocity: None,
 //! });
 //! assert!(d.hold && d.reasons.contains(Reasons::STALE | Reasons::ALTITUDE));
 //! assert!(d.velocity[2] > 0.0); // climbing back in, not down
@@ -123,6 +125,38 @@ pub struct Limits {
     pub return_speed: f32,
     /// Oldest usable world snapshot, seconds.
     pub max_snapshot_age_s: f32,
+    /// How the vehicle brakes, when it does not fly its setpoint at once: the fence then keeps
+    /// its stopping distance. `None`: the velocity is the setpoint (every earlier number).
+    pub braking: Option<Braking>,
+}
+
+/// How a vehicle slows down: at most `deceleration`, after a delay of `lag_s` (its velocity
+/// loop's lag and the time its jerk limit takes to reach that deceleration).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Braking {
+    /// m/s², > 0.
+    pub deceleration: f32,
+    /// s, >= 0.
+    pub lag_s: f32,
+}
+
+impl Braking {
+    /// The fastest speed, m/s, from which the vehicle stops within `distance` m: the root of
+    /// `v * lag + v^2 / (2 a) = distance` (0 for no room).
+    pub fn stopping_speed(&self, distance: f32) -> f32 {
+        if distance <= 0.0 {
+            return 0.0;
+        }
+        let (a, lag) = (self.deceleration, self.lag_s);
+        a * (libm::sqrtf(lag * lag + 2.0 * distance / a) - lag)
+    }
+
+    fn is_valid(&self) -> bool {
+        self.deceleration.is_finite()
+            && self.deceleration > 0.0
+            && self.lag_s.is_finite()
+            && self.lag_s >= 0.0
+    }
 }
 
 impl Limits {
@@ -140,6 +174,7 @@ impl Limits {
             lookahead_s: 1.0,
             return_speed: 1.0,
             max_snapshot_age_s: 1.0,
+            braking: None,
         }
     }
 
@@ -166,6 +201,7 @@ impl Limits {
             && positive(self.return_speed)
             && self.max_snapshot_age_s.is_finite()
             && self.max_snapshot_age_s >= 0.0
+            && self.braking.is_none_or(|b| b.is_valid())
             && (0..3).all(|i| {
                 self.fence_min[i].is_finite()
                     && self.fence_max[i].is_finite()
@@ -185,6 +221,10 @@ pub struct Situation {
     pub snapshot_age_s: f32,
     /// Whether every number in that snapshot is finite (see `wire::WorldSnapshot::is_finite`).
     pub snapshot_finite: bool,
+    /// The velocity the vehicle flies now, m/s, when known (the autopilot's, or from its last
+    /// positions). With [`Limits::braking`], a vehicle already too fast to stop before a bound
+    /// is commanded to stop along that axis, not merely to slow to the stopping speed.
+    pub current_velocity: Option<[f32; 3]>,
 }
 
 /// The velocity to fly and why it differs from the request.
@@ -260,8 +300,27 @@ pub fn check(limits: &Limits, situation: &Situation) -> Decision {
                 reasons.insert(flag_out);
                 v[axis] = v[axis].min(-limits.return_speed);
             } else {
-                let up = (hi - p) / limits.lookahead_s;
-                let down = -(p - lo) / limits.lookahead_s;
+                let (mut up, mut down) = (
+                    (hi - p) / limits.lookahead_s,
+                    -(p - lo) / limits.lookahead_s,
+                );
+                if let Some(b) = limits.braking {
+                    let (stop_up, stop_down) = (b.stopping_speed(hi - p), b.stopping_speed(p - lo));
+                    up = up.min(stop_up);
+                    down = down.max(-stop_down);
+                    // Already closing faster than it could stop from: brake now (a lagging
+                    // vehicle follows a command that merely tapers down too late).
+                    if let Some(current) = situation.current_velocity.map(|c| c[axis])
+                        && current.is_finite()
+                    {
+                        if current > stop_up {
+                            up = up.min(0.0);
+                        }
+                        if -current > stop_down {
+                            down = down.max(0.0);
+                        }
+                    }
+                }
                 if v[axis] > up || v[axis] < down {
                     reasons.insert(flag_trim);
                     v[axis] = v[axis].clamp(down, up);

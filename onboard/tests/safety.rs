@@ -79,6 +79,7 @@ fn exhaustive_over_stale_nonfinite_outside_overspeed() {
                             velocity,
                             snapshot_age_s: age,
                             snapshot_finite: nan_at != Some(0),
+                            current_velocity: None,
                         };
                         match nan_at {
                             Some(1) => s.position[1] = bad,
@@ -126,6 +127,7 @@ fn near_fence_requests_are_trimmed_not_reversed() {
         velocity: [4.0, 0.0, 0.0],
         snapshot_age_s: 0.0,
         snapshot_finite: true,
+        current_velocity: None,
     };
     let d = check(&l, &s);
     assert!(d.reasons.contains(Reasons::FENCE_LIMITED) && !d.hold);
@@ -168,6 +170,7 @@ fn invalid_limits_hold() {
             velocity: [1.0, 0.0, 0.0],
             snapshot_age_s: 0.0,
             snapshot_finite: true,
+            current_velocity: None,
         };
         let d = check(&broken, &s);
         assert!(d.hold && d.reasons == Reasons::INVALID_LIMITS && d.velocity == [0.0; 3]);
@@ -195,4 +198,79 @@ fn the_fence_margin_shrinks_in_a_small_room() {
     assert_eq!(Limits::fence_margin([f32::NAN, f32::NAN, 3.0]), 0.0);
     assert_eq!(Limits::fence_margin([-5.0, 10.0, 3.0]), 0.0);
     assert!(!Limits::arena([f32::NAN, 10.0, 3.0], 1.0).is_valid());
+}
+
+#[test]
+fn braking_keeps_the_stopping_distance_to_the_fence() {
+    use skyherd_onboard::safety::Braking;
+    let braking = Braking {
+        deceleration: 0.5,
+        lag_s: 0.6,
+    };
+    // v * lag + v^2 / (2 a) = d: from 1 m/s it needs 0.6 + 1.0 = 1.6 m.
+    assert!((braking.stopping_speed(1.6) - 1.0).abs() < 1e-5);
+    assert_eq!(braking.stopping_speed(0.0), 0.0);
+    assert_eq!(braking.stopping_speed(-1.0), 0.0);
+    let room = Limits::arena([10.0, 10.0, 3.0], 1.0);
+    let braked = Limits {
+        braking: Some(braking),
+        ..room
+    };
+    // 1 m short of the east fence (at 9.75 m), asked east at 1 m/s.
+    let s = Situation {
+        position: [8.75, 5.0, 1.0],
+        velocity: [1.0, 0.0, 0.0],
+        snapshot_age_s: 0.0,
+        snapshot_finite: true,
+        current_velocity: None,
+    };
+    // Without braking the look-ahead lets 1 m/s through; with it, only what stops in 1 m.
+    assert_eq!(check(&room, &s).velocity[0], 1.0);
+    let d = check(&braked, &s);
+    assert!(
+        (d.velocity[0] - braking.stopping_speed(1.0)).abs() < 1e-6,
+        "{d:?}"
+    );
+    assert!(d.velocity[0] < 0.75 && d.reasons.contains(Reasons::FENCE_LIMITED));
+    // Already flying east at 1 m/s, 1 m short: too fast to stop there, so it stops now.
+    let fast = Situation {
+        current_velocity: Some([1.0, 0.0, 0.0]),
+        ..s
+    };
+    let d = check(&braked, &fast);
+    assert_eq!(d.velocity[0], 0.0, "{d:?}");
+    // Slow enough: the stopping speed, as without a known velocity.
+    let slow = Situation {
+        current_velocity: Some([0.5, 0.0, 0.0]),
+        ..s
+    };
+    assert!((check(&braked, &slow).velocity[0] - braking.stopping_speed(1.0)).abs() < 1e-6);
+    // Away from the fence nothing changes, and bad braking values are invalid limits.
+    let away = Situation {
+        velocity: [-1.0, 0.0, 0.0],
+        ..s
+    };
+    assert_eq!(check(&braked, &away).velocity, [-1.0, 0.0, 0.0]);
+    for bad in [
+        Braking {
+            deceleration: 0.0,
+            lag_s: 0.1,
+        },
+        Braking {
+            deceleration: f32::NAN,
+            lag_s: 0.1,
+        },
+        Braking {
+            deceleration: 1.0,
+            lag_s: -0.1,
+        },
+    ] {
+        assert!(
+            !Limits {
+                braking: Some(bad),
+                ..room
+            }
+            .is_valid()
+        );
+    }
 }

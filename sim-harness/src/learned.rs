@@ -248,6 +248,7 @@ impl<A: Infer> Policy for ActorPolicy<A> {
                     velocity: request,
                     snapshot_age_s: 0.0,
                     snapshot_finite: true,
+                    current_velocity: None,
                 },
             )
             .velocity

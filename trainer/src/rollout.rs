@@ -237,6 +237,7 @@ fn flown_velocity(
                 velocity: request,
                 snapshot_age_s: 0.0,
                 snapshot_finite: true,
+                current_velocity: None,
             };
             safety::check(l, &situation).velocity
         }

@@ -88,7 +88,7 @@ use skyherd_onboard::Task;
 use skyherd_onboard::actor::Actor;
 use skyherd_onboard::frame::{ned_to_sim, sim_to_ned};
 use skyherd_onboard::obs::{self, FEATURES, ObsError, ObsInput};
-use skyherd_onboard::safety::{self, Limits, Reasons, Situation};
+use skyherd_onboard::safety::{self, Braking, Limits, Reasons, Situation};
 use skyherd_onboard::separation::{Peer, SeparationConfig, separate};
 use skyherd_onboard::wire::{
     MissionAction, MissionCommand, Reassembler, Uplink, WireError, WorldSnapshot, decode_uplink,
@@ -150,6 +150,9 @@ pub struct CoreConfig {
     /// autopilot's local frame is the world's (the mock autopilots); a real autopilot's EKF
     /// origin is where it booted, which the ground's surveyed frame has to be told.
     pub local_origin: [f32; 2],
+    /// How the vehicle brakes (`skyherd_onboard::safety::Braking`): the fence then keeps the
+    /// stopping distance. `None`: the vehicle is taken to fly its setpoint at once.
+    pub braking: Option<Braking>,
 }
 
 impl CoreConfig {
@@ -172,6 +175,7 @@ impl CoreConfig {
             takeoff_altitude: 1.0,
             climb_speed: 0.7,
             local_origin: [0.0; 2],
+            braking: None,
         }
     }
 }
@@ -949,6 +953,7 @@ impl<P: OnboardPolicy> DaemonCore<P> {
         let age_ms = u64::try_from(age.as_millis()).unwrap_or(u64::MAX);
         let max_speed = self.config.max_speed.min(world.max_speed);
         let mut limits = Limits::arena(world.area, max_speed);
+        limits.braking = self.config.braking;
         limits.max_snapshot_age_s = self.config.uplink_timeout.as_millis() as f32 / 1000.0;
         // The actor learned to herd from as low as the ground; this drone may not fly below
         // its altitude band, so it reads its height above the band's floor (feature 22): held
@@ -1012,6 +1017,7 @@ impl<P: OnboardPolicy> DaemonCore<P> {
                 velocity: request,
                 snapshot_age_s: age_ms as f32 / 1000.0,
                 snapshot_finite: world.is_finite(),
+                current_velocity: Some(self.autopilot.velocity),
             },
         );
         // Even a hold goes through the rules: outside the fence they steer back in.

@@ -299,6 +299,7 @@ fn check_safety(area: [f32; 3], max_speed: f32) -> Result<(), SelfTestError> {
                 velocity,
                 snapshot_age_s: age,
                 snapshot_finite: finite,
+                current_velocity: None,
             },
         );
         let ok = d.hold == hold

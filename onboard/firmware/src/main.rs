@@ -44,6 +44,7 @@ fn decide(actor: &Actor<'_>, world: &WorldSnapshot, herder: usize) -> [f32; 3] {
         velocity,
         snapshot_age_s: 0.0,
         snapshot_finite: world.is_finite(),
+        current_velocity: None,
     };
     safety::check(&limits, &situation).velocity
 }

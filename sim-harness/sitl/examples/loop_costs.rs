@@ -167,6 +167,7 @@ impl Policy for LoopLike {
                 velocity: velocity.map(|x| x as f32),
                 snapshot_age_s: 0.0,
                 snapshot_finite: true,
+                current_velocity: None,
             },
         );
         decision.velocity.map(f64::from)

@@ -39,6 +39,8 @@ pub struct LaunchPlan {
     pub land_after_s: f64,
     /// The daemons take off to this height (`--takeoff-alt-m`), m.
     pub takeoff_alt_m: f64,
+    /// The vehicles' braking (`--braking DECELERATION,LAG`), when they fly a dynamics model.
+    pub braking: Option<(f64, f64)>,
 }
 
 /// The ground station's command: it listens for the fleet at `fleet`, and sends each drone's
@@ -160,6 +162,9 @@ pub fn daemon_command(
     }
     if let Some([east, north]) = autopilot.local_origin {
         cmd.arg("--local-origin").arg(format!("{east},{north}"));
+    }
+    if let Some((deceleration, lag)) = plan.braking {
+        cmd.arg("--braking").arg(format!("{deceleration},{lag}"));
     }
     if let Some(m) = plan.keep_apart_m {
         cmd.arg("--separation-m").arg(m.to_string());

@@ -34,7 +34,7 @@ struct Cli {
 #[derive(Subcommand, Debug)]
 enum Command {
     /// Connect to the autopilot and the ground station and fly missions.
-    Run(RunArgs),
+    Run(Box<RunArgs>),
     /// Exercise the core without sockets (model, encoder, actor, safety, wire, mission flow).
     SelfTest {
         /// A model file to check instead of the built-in seeded one.
@@ -109,6 +109,10 @@ struct RunArgs {
     /// world frame: EAST,NORTH metres [default: 0,0, the frames coincide].
     #[arg(long)]
     local_origin: Option<String>,
+    /// The vehicle's braking, DECELERATION,LAG (m/s², s): the fence keeps the distance it
+    /// needs to stop (its velocity lag plus v^2 / 2a) [default: it flies its setpoint at once].
+    #[arg(long)]
+    braking: Option<String>,
 }
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -200,6 +204,22 @@ fn run(args: RunArgs) -> Result<()> {
         );
     }
     config.takeoff_altitude = args.takeoff_alt_m;
+    if let Some(spec) = &args.braking {
+        let parts: Vec<f32> = spec
+            .split(',')
+            .map(|v| v.trim().parse::<f32>())
+            .collect::<Result<_, _>>()
+            .with_context(|| format!("--braking must be DECELERATION,LAG, got {spec:?}"))?;
+        match parts[..] {
+            [a, lag] if a.is_finite() && a > 0.0 && lag.is_finite() && lag >= 0.0 => {
+                config.braking = Some(skyherd_onboard::safety::Braking {
+                    deceleration: a,
+                    lag_s: lag,
+                });
+            }
+            _ => bail!("--braking must be a deceleration > 0 m/s^2 and a lag >= 0 s, got {spec:?}"),
+        }
+    }
     if let Some(spec) = &args.local_origin {
         let parts: Vec<f32> = spec
             .split(',')
@@ -263,7 +283,7 @@ fn main() -> Result<()> {
     env_logger::Builder::from_env(env_logger::Env::default().default_filter_or(default_level))
         .init();
     match cli.command {
-        Command::Run(args) => run(args),
+        Command::Run(args) => run(*args),
         Command::SelfTest { model } => {
             let file = match &model {
                 Some(path) => Some((path.display().to_string(), read(path, "model file")?)),

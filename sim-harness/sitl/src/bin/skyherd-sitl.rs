@@ -298,6 +298,17 @@ fn main() -> Result<std::process::ExitCode> {
         },
         land_after_s: sitl.config().land_after_s,
         takeoff_alt_m: sitl.config().takeoff_altitude_m,
+        // With a dynamics model the daemons are told how the vehicles brake: its horizontal
+        // deceleration, after its lag and the time its jerk limit takes to turn a full
+        // acceleration into a full deceleration (the worst case: still speeding up towards
+        // the wall when it must brake). The horizontal limit bounds the vector, so braking
+        // along one axis while turning along the other gets 1/sqrt(2) of it.
+        braking: sitl.config().dynamics.map(|d| {
+            (
+                d.max_accel_horizontal * std::f64::consts::FRAC_1_SQRT_2,
+                d.time_constant + 2.0 * d.max_accel_horizontal / d.max_jerk,
+            )
+        }),
     };
     let uplink_ports: Vec<u16> = (0..drones)
         .map(|_| free_udp_port())
