@@ -28,6 +28,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
+use crate::dynamics::{Multicopter, Wind};
 use crate::noise::{Stream, actuate, perturb_params, sense, stream_rng};
 use crate::policy::{Policy, act_all};
 use crate::reward::{RewardParams, RewardTerms, StepFacts, reward};
@@ -110,7 +111,14 @@ pub struct Env {
     previous_herders: Vec<[f64; 3]>,
     noisy_actions: Vec<[f64; 3]>,
     info: EpisodeInfo,
+    /// With `scenario.dynamics`: each herder's multicopter and wind, and the wind's stream.
+    drones: Vec<(Multicopter, Wind)>,
+    wind_rng: ChaCha8Rng,
 }
+
+/// Sub-step of the motion model inside one environment step, s (at most; the step is split
+/// evenly): a 1 s paper step is far too coarse for a 0.3 s lag.
+const MOTION_STEP_S: f64 = 0.02;
 
 impl Env {
     /// An environment for `scenario` (validated again here), reset with the scenario's seed.
@@ -145,6 +153,8 @@ impl Env {
             previous_herders: vec![[0.0; 3]; m],
             noisy_actions: Vec::with_capacity(m),
             info: EpisodeInfo::default(),
+            drones: Vec::new(),
+            wind_rng: stream_rng(seed, Stream::Wind),
         };
         env.reset(seed);
         Ok(env)
@@ -172,6 +182,7 @@ impl Env {
         self.world.step = 0;
         self.sensing_rng = stream_rng(seed, Stream::Sensing);
         self.actuation_rng = stream_rng(seed, Stream::Actuation);
+        self.reset_drones(seed);
         let goal = self.world.goal.center;
         for (d, &t) in self.goal_distance.iter_mut().zip(&self.world.targets) {
             *d = dist2(t, goal).sqrt();
@@ -205,6 +216,7 @@ impl Env {
         self.world = world;
         self.sensing_rng = stream_rng(seed, Stream::Sensing);
         self.actuation_rng = stream_rng(seed, Stream::Actuation);
+        self.reset_drones(seed);
         self.info = EpisodeInfo {
             seed,
             lower_bound_s: lower_bound_time(&self.world),
@@ -212,6 +224,44 @@ impl Env {
         };
         self.refresh_observation();
         Ok(self.observation())
+    }
+
+    /// With dynamics: every herder hovering where it is, its gusts drawn from the episode's
+    /// wind stream.
+    fn reset_drones(&mut self, seed: u64) {
+        self.drones.clear();
+        self.wind_rng = stream_rng(seed, Stream::Wind);
+        if let Some(d) = self.scenario.dynamics {
+            for h in &self.world.herders {
+                let wind = Wind::new(&d.wind, &mut self.wind_rng);
+                self.drones.push((Multicopter::hovering_at(*h), wind));
+            }
+        }
+    }
+
+    /// With dynamics: replaces each commanded velocity by the mean velocity the herder's
+    /// multicopter flies over the step (so that velocity * dt is where it goes).
+    fn fly_drones(&mut self) {
+        let Some(d) = self.scenario.dynamics else {
+            return;
+        };
+        let dt = self.world.dt;
+        let steps = (dt / MOTION_STEP_S).ceil().max(1.0) as usize;
+        let h = dt / steps as f64;
+        for ((drone, wind), (action, herder)) in self
+            .drones
+            .iter_mut()
+            .zip(self.noisy_actions.iter_mut().zip(&self.world.herders))
+        {
+            // The world is the truth (it caps speeds and the ceiling): start from it.
+            drone.position = *herder;
+            let command = *action;
+            for _ in 0..steps {
+                let air = wind.step(&d.wind, h, &mut self.wind_rng);
+                drone.step(command, air, &d.limits, h);
+            }
+            *action = std::array::from_fn(|k| (drone.position[k] - herder[k]) / dt);
+        }
     }
 
     fn refresh_observation(&mut self) {
@@ -241,7 +291,11 @@ impl Env {
             self.scenario.noise.actuation_std,
             &mut self.actuation_rng,
         );
+        self.fly_drones();
         advance(&mut self.world, &self.noisy_actions, &mut self.scratch)?;
+        for ((drone, _), herder) in self.drones.iter_mut().zip(&self.world.herders) {
+            drone.position = *herder;
+        }
 
         let goal = self.world.goal;
         let r2 = goal.radius * goal.radius;

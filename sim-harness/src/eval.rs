@@ -70,6 +70,9 @@ pub struct SweepSpec {
     pub step_limit: Option<u64>,
     /// `(i, n)`: run only configurations whose index is `i` modulo `n`.
     pub shard: (usize, usize),
+    /// Herder dynamics and wind for every configuration (`None`: the presets' instant
+    /// herders, the paper's protocol).
+    pub dynamics: Option<crate::scenario::HerderDynamics>,
 }
 
 impl SweepSpec {
@@ -88,6 +91,7 @@ impl SweepSpec {
             base_seed: 0,
             step_limit: None,
             shard: (0, 1),
+            dynamics: None,
         }
     }
 
@@ -125,6 +129,7 @@ impl SweepSpec {
         if let Some(limit) = self.step_limit {
             s.step_limit = limit;
         }
+        s.dynamics = self.dynamics;
         s
     }
 }

@@ -58,6 +58,7 @@ pub(crate) enum Stream {
     BoidsParams = 1,
     Sensing = 2,
     Actuation = 3,
+    Wind = 4,
 }
 
 /// A ChaCha8 generator for `stream` of `seed`.

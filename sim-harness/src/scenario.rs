@@ -65,6 +65,20 @@ pub struct Scenario {
     pub reward: RewardParams,
     /// Noise levels.
     pub noise: NoiseConfig,
+    /// How the herders follow their commands: absent, at once (every preset, every earlier
+    /// number); present, through the multicopter model of [`crate::dynamics`] in its wind.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub dynamics: Option<HerderDynamics>,
+}
+
+/// The herders' motion model and their air (TOML `[dynamics]` with `limits` and `wind` tables).
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct HerderDynamics {
+    /// Acceleration, jerk and speed limits, lag.
+    pub limits: crate::dynamics::DynamicsLimits,
+    /// The wind.
+    pub wind: crate::dynamics::WindConfig,
 }
 
 /// The herder count M: fixed, or `2^floor(log2(N)/2)` (TOML: an integer or `"adaptive"`).
@@ -307,6 +321,23 @@ impl Scenario {
     pub fn validate(&self) -> Result<(), ScenarioError> {
         let bad =
             |field: &'static str, reason: String| Err(ScenarioError::Invalid { field, reason });
+        if let Some(d) = &self.dynamics {
+            if let Err(field) = d.limits.validate() {
+                return bad("dynamics.limits", format!("{field} must be finite and > 0"));
+            }
+            let w = &d.wind;
+            if !(w.mean.iter().all(|c| c.is_finite() && c.abs() <= 100.0)
+                && w.gust_std.is_finite()
+                && (0.0..=50.0).contains(&w.gust_std)
+                && w.gust_time.is_finite()
+                && w.gust_time > 0.0)
+            {
+                return bad(
+                    "dynamics.wind",
+                    "mean within 100 m/s, gusts 0-50 m/s over a positive time".into(),
+                );
+            }
+        }
         // Finite is not enough: 1e308 passes it and overflows a step (see
         // `world::MAX_MAGNITUDE`).
         let max = crate::world::MAX_MAGNITUDE;

@@ -20,6 +20,7 @@ fn spec() -> SweepSpec {
         base_seed: 9,
         step_limit: Some(400),
         shard: (0, 1),
+        dynamics: None,
     }
 }
 

@@ -134,6 +134,27 @@ struct EvalArgs {
     /// episodes that breached, with or without it.
     #[arg(long)]
     keep_apart: bool,
+    /// Fly the herders through a multicopter model (`skyherd_sim::dynamics`): `px4` (PX4's
+    /// default limits) or `indoor` (scaled to the room's slow drones) [default: they fly their
+    /// commands at once, the paper's protocol].
+    #[arg(long, value_enum)]
+    dynamics: Option<DynamicsArg>,
+    /// The wind with --dynamics: `calm`, `arena` (3 m/s, 1 m/s gusts) or `room` (draughts).
+    #[arg(long, value_enum, default_value_t = WindArg::Calm)]
+    wind: WindArg,
+}
+
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+enum DynamicsArg {
+    Px4,
+    Indoor,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, clap::ValueEnum)]
+enum WindArg {
+    Calm,
+    Arena,
+    Room,
 }
 
 #[derive(clap::Args, Debug)]
@@ -249,7 +270,26 @@ fn eval_command(args: EvalArgs) -> Result<()> {
         plots,
         json,
         keep_apart,
+        dynamics,
+        wind,
     } = args;
+    let dynamics = match dynamics {
+        None if wind != WindArg::Calm => {
+            bail!("--wind needs --dynamics: without a motion model nothing feels it")
+        }
+        None => None,
+        Some(d) => Some(skyherd_sim::scenario::HerderDynamics {
+            limits: match d {
+                DynamicsArg::Px4 => skyherd_sim::dynamics::DynamicsLimits::px4(),
+                DynamicsArg::Indoor => skyherd_sim::dynamics::DynamicsLimits::indoor(),
+            },
+            wind: match wind {
+                WindArg::Calm => skyherd_sim::dynamics::WindConfig::CALM,
+                WindArg::Arena => skyherd_sim::dynamics::WindConfig::arena(),
+                WindArg::Room => skyherd_sim::dynamics::WindConfig::room(),
+            },
+        }),
+    };
     let spec = SweepSpec {
         tasks: tasks
             .iter()
@@ -265,6 +305,7 @@ fn eval_command(args: EvalArgs) -> Result<()> {
         base_seed: seed,
         step_limit,
         shard: parse_shard(&shard)?,
+        dynamics,
     };
     eval(spec, threads, out_dir.as_deref(), plots, json)
 }
