@@ -14,6 +14,21 @@ seeds="${2:-5}"
 cargo build --quiet --release --locked -p skyherd-trainer
 trainer=target/release/skyherd-trainer
 out_dir=$(sed -n 's/^output_dir *= *"\(.*\)"/\1/p' "$config")
+# Finished runs of the default config are kept in the repository (docs/learning/ablation-seedS/
+# ARM-eval.csv, the runs themselves are not): they count as done here, so a fresh checkout
+# goes on with the seeds not run yet.
+if [ "$config" = "trainer/configs/mtddpg-scratch.toml" ]; then
+  for kept in docs/learning/ablation-seed*/*-eval.csv; do
+    [ -f "$kept" ] || continue
+    seed=${kept#docs/learning/ablation-seed}; seed=${seed%%/*}
+    arm=$(basename "$kept" -eval.csv)
+    run="$out_dir/$arm-seed$seed"
+    if [ ! -f "$run/done" ]; then
+      mkdir -p "$run" && cp "$kept" "$run/eval.csv" && touch "$run/done"
+      echo "ablation: $run restored from $kept"
+    fi
+  done
+fi
 for seed in $(seq 1 "$seeds"); do
   for arm in mtddpg single-driving single-collecting; do
     run="$out_dir/$arm-seed$seed"
