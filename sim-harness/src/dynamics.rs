@@ -267,6 +267,21 @@ impl WindConfig {
             gust_time: 2.0,
         }
     }
+
+    /// What a usable wind is: a mean within 100 m/s, gusts of 0-50 m/s over a positive time
+    /// (NaN never is). On failure, that sentence, for the caller's error.
+    pub fn validate(&self) -> Result<(), &'static str> {
+        let usable = self.mean.iter().all(|c| c.is_finite() && c.abs() <= 100.0)
+            && self.gust_std.is_finite()
+            && (0.0..=50.0).contains(&self.gust_std)
+            && self.gust_time.is_finite()
+            && self.gust_time > 0.0;
+        if usable {
+            Ok(())
+        } else {
+            Err("mean within 100 m/s, gusts 0-50 m/s over a positive time")
+        }
+    }
 }
 
 /// The wind's state: its gust part per axis.

@@ -75,8 +75,10 @@ pub struct ActorPolicy<A> {
     flight_rules: bool,
     /// Whether the daemon's separation rule applies (see [`ActorPolicy::keeping_apart`]).
     keep_apart: bool,
-    /// Herder positions of the last step seen and that step, for the peers' velocities.
-    previous: Option<(u64, Vec<[f64; 3]>)>,
+    /// The last step seen (`None` after a reset) and its herder positions, for the peers'
+    /// velocities.
+    previous_step: Option<u64>,
+    previous: Vec<[f64; 3]>,
     /// Each herder's velocity over the last step, m/s (zero at the start).
     velocities: Vec<[f32; 3]>,
     /// Scratch for the separation rule's peers.
@@ -95,7 +97,8 @@ impl<A: Infer> ActorPolicy<A> {
             features: [0.0; FEATURES],
             flight_rules: false,
             keep_apart: false,
-            previous: None,
+            previous_step: None,
+            previous: Vec::new(),
             velocities: Vec::new(),
             peers: Vec::new(),
             recorded: None,
@@ -129,13 +132,11 @@ impl<A: Infer> ActorPolicy<A> {
     /// Each herder's velocity over the step that led to `world`.
     fn track_velocities(&mut self, world: &World) {
         self.velocities.clear();
-        match &self.previous {
-            Some((step, before))
-                if *step + 1 == world.step && before.len() == world.herders.len() =>
-            {
+        match self.previous_step {
+            Some(step) if step + 1 == world.step && self.previous.len() == world.herders.len() => {
                 let dt = world.dt.max(f64::MIN_POSITIVE);
                 self.velocities
-                    .extend(before.iter().zip(&world.herders).map(|(a, b)| {
+                    .extend(self.previous.iter().zip(&world.herders).map(|(a, b)| {
                         [
                             ((b[0] - a[0]) / dt) as f32,
                             ((b[1] - a[1]) / dt) as f32,
@@ -145,7 +146,8 @@ impl<A: Infer> ActorPolicy<A> {
             }
             _ => self.velocities.resize(world.herders.len(), [0.0; 3]),
         }
-        self.previous = Some((world.step, world.herders.clone()));
+        self.previous_step = Some(world.step);
+        self.previous.clone_from(&world.herders);
     }
 
     /// Wraps `actor` as the onboard daemon flies it: the encoder reads the drone's height above
@@ -178,7 +180,7 @@ impl<A: Infer> Policy for ActorPolicy<A> {
     fn reset(&mut self, world: &World, _seed: u64) {
         self.buffers.fill(world);
         self.loaded_step = Some(world.step);
-        self.previous = None;
+        self.previous_step = None;
         if self.keep_apart {
             self.track_velocities(world);
         }
@@ -190,7 +192,7 @@ impl<A: Infer> Policy for ActorPolicy<A> {
         if herder == 0 || self.loaded_step != Some(world.step) {
             self.buffers.fill(world);
             self.loaded_step = Some(world.step);
-            if self.keep_apart && self.previous.as_ref().is_none_or(|(s, _)| *s != world.step) {
+            if self.keep_apart && self.previous_step != Some(world.step) {
                 self.track_velocities(world);
             }
         }

@@ -325,17 +325,8 @@ impl Scenario {
             if let Err(field) = d.limits.validate() {
                 return bad("dynamics.limits", format!("{field} must be finite and > 0"));
             }
-            let w = &d.wind;
-            if !(w.mean.iter().all(|c| c.is_finite() && c.abs() <= 100.0)
-                && w.gust_std.is_finite()
-                && (0.0..=50.0).contains(&w.gust_std)
-                && w.gust_time.is_finite()
-                && w.gust_time > 0.0)
-            {
-                return bad(
-                    "dynamics.wind",
-                    "mean within 100 m/s, gusts 0-50 m/s over a positive time".into(),
-                );
+            if let Err(reason) = d.wind.validate() {
+                return bad("dynamics.wind", reason.into());
             }
         }
         // Finite is not enough: 1e308 passes it and overflows a step (see

@@ -72,6 +72,22 @@ pub fn land(target_system: u8, target_component: u8) -> MavMessage {
     )
 }
 
+/// MAV_CMD_SET_MESSAGE_INTERVAL: send message `message_id` every `interval_us` µs on the link
+/// the command came in on (ArduPilot streams LOCAL_POSITION_NED only when asked).
+pub fn message_interval(
+    target_system: u8,
+    target_component: u8,
+    message_id: u32,
+    interval_us: f32,
+) -> MavMessage {
+    command_long(
+        target_system,
+        target_component,
+        MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL,
+        [message_id as f32, interval_us, 0.0, 0.0, 0.0, 0.0, 0.0],
+    )
+}
+
 /// A velocity-only setpoint in MAV_FRAME_LOCAL_NED (m/s, north-east-down).
 pub fn velocity_setpoint_ned(
     target_system: u8,

@@ -43,13 +43,13 @@ use crate::control::{AutopilotCommand, DaemonCore, Millis, OnboardPolicy, Setpoi
 use skyherd_link::AUTOPILOT_COMPONENT_ID;
 /// Our MAVLink component id: `MAV_COMP_ID_ONBOARD_COMPUTER`.
 pub use skyherd_link::DAEMON_COMPONENT_ID as COMPONENT_ID;
-use skyherd_link::command::{command_long, land, velocity_setpoint_ned};
+use skyherd_link::command::{command_long, land, message_interval, velocity_setpoint_ned};
 use skyherd_link::replay::{ReplayGuard, ReplayStateError, SignatureError, SigningTime};
 use skyherd_link::signing::{SigningKey, signing_data};
 /// The LOCAL_POSITION_NED interval the daemon asks for, µs: 10 Hz, the actor's control rate.
 pub const POSITION_INTERVAL_US: f32 = 100_000.0;
 /// MAVLink message id of LOCAL_POSITION_NED.
-const LOCAL_POSITION_NED_ID: f32 = 32.0;
+const LOCAL_POSITION_NED_ID: u32 = 32;
 /// No position for this long (wall time): ask for the stream again.
 const POSITION_SILENCE: Duration = Duration::from_millis(1500);
 
@@ -1151,19 +1151,11 @@ impl<P: OnboardPolicy> Daemon<P> {
         self.positions_requested_at = Some(Instant::now());
         let system_id = self.core.config().system_id;
         debug!("asking the autopilot for LOCAL_POSITION_NED every {POSITION_INTERVAL_US} us");
-        let message = command_long(
+        let message = message_interval(
             system_id,
             AUTOPILOT_COMPONENT_ID,
-            MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL,
-            [
-                LOCAL_POSITION_NED_ID,
-                POSITION_INTERVAL_US,
-                0.0,
-                0.0,
-                0.0,
-                0.0,
-                0.0,
-            ],
+            LOCAL_POSITION_NED_ID,
+            POSITION_INTERVAL_US,
         );
         self.send_autopilot(&message);
         self.counters.autopilot.stream_requests += 1;

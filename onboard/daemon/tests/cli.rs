@@ -102,6 +102,14 @@ fn without_a_key_the_daemon_refuses_to_fly_unless_told_it_is_a_bench_test() {
         ("--land-after-s", "-1"),
         ("--land-after-s", "inf"),
         ("--land-after-s", "1e300"),
+        ("--takeoff-alt-m", "0"),
+        ("--takeoff-alt-m", "nan"),
+        ("--braking", "0.5"),
+        ("--braking", "0,1"),
+        ("--braking", "0.5,-1"),
+        ("--braking", "x,1"),
+        ("--local-origin", "1,nan"),
+        ("--local-origin", "1,2,3"),
     ] {
         let arg = format!("{flag}={value}");
         let (ok, err) = run_with(&["--model", model, "--system-id", "1", "--insecure", &arg]);

@@ -26,8 +26,8 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-use mavlink::dialects::common::{MavAutopilot, MavCmd, MavMessage};
-use skyherd_link::command::command_long;
+use mavlink::dialects::common::{MavAutopilot, MavMessage};
+use skyherd_link::command::message_interval;
 use skyherd_link::{Codec, Frame, Signing};
 use thiserror::Error;
 
@@ -74,8 +74,16 @@ pub struct ArduCopterBundle {
 impl ArduCopterBundle {
     /// Finds the bundle for the checkout at `repo_root`; see the [module docs](self).
     pub fn locate(repo_root: &Path) -> Result<Self, ArduCopterError> {
+        Self::locate_from(std::env::var_os("SKYHERD_ARDUCOPTER"), repo_root)
+    }
+
+    /// [`locate`](Self::locate) with `SKYHERD_ARDUCOPTER`'s value given.
+    fn locate_from(
+        env: Option<std::ffi::OsString>,
+        repo_root: &Path,
+    ) -> Result<Self, ArduCopterError> {
         let mut candidates = Vec::new();
-        if let Some(env) = std::env::var_os("SKYHERD_ARDUCOPTER") {
+        if let Some(env) = env {
             let path = PathBuf::from(env);
             if path.is_file() {
                 let folder = path.parent().map(Path::to_path_buf).unwrap_or_default();
@@ -306,12 +314,7 @@ impl ArduCopter {
             return Ok(());
         }
         self.requested_at = Some(Instant::now());
-        let request = command_long(
-            self.system_id,
-            1,
-            MavCmd::MAV_CMD_SET_MESSAGE_INTERVAL,
-            [32.0, POSITION_INTERVAL_US, 0.0, 0.0, 0.0, 0.0, 0.0],
-        );
+        let request = message_interval(self.system_id, 1, 32, POSITION_INTERVAL_US);
         let bytes = self.codec.encode(&request);
         match self.serial1.send_to(&bytes, peer) {
             Ok(_) => Ok(()),
@@ -400,10 +403,11 @@ mod tests {
     fn a_missing_bundle_says_where_it_looked() {
         let empty = std::env::temp_dir().join(format!("skyherd-no-ac-{}", std::process::id()));
         std::fs::create_dir_all(&empty).unwrap();
-        // SAFETY-free: the variable is read, never set, by this test; another test setting
-        // it would only add a candidate.
-        let err = ArduCopterBundle::locate(&empty.join("repo")).unwrap_err();
+        let missing = empty.join("no-such-arducopter");
+        let err =
+            ArduCopterBundle::locate_from(Some(missing.into()), &empty.join("repo")).unwrap_err();
         let text = err.to_string();
+        assert!(text.contains("no-such-arducopter/arducopter"), "{text}");
         assert!(text.contains("ardupilot-sitl/arducopter"), "{text}");
         assert!(text.contains("scripts/build-arducopter.sh"), "{text}");
         let _ = std::fs::remove_dir_all(&empty);

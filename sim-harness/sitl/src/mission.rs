@@ -46,7 +46,7 @@ use super::sensor::{DetectionSensor, SensorConfig, SensorError};
 use skyherd_sim::dynamics::{DynamicsLimits, WindConfig};
 use skyherd_sim::env::Env;
 use skyherd_sim::scenario::{Scenario, ScenarioError};
-use skyherd_sim::world::{StepScratch, World, WorldError, advance};
+use skyherd_sim::world::{StepScratch, World, WorldError, advance, closest_pair_m};
 
 /// System id of the tracking sensor on the fleet link.
 pub const SENSOR_SYSTEM_ID: u8 = 200;
@@ -251,17 +251,8 @@ impl SitlConfig {
                 reason: format!("{field} must be finite and > 0"),
             })?;
         }
-        let w = &self.wind;
-        if !(w.mean.iter().all(|c| c.is_finite() && c.abs() <= 100.0)
-            && w.gust_std.is_finite()
-            && (0.0..=50.0).contains(&w.gust_std)
-            && w.gust_time.is_finite()
-            && w.gust_time > 0.0)
-        {
-            return bad(
-                "wind",
-                "mean within 100 m/s, gusts 0-50 m/s over a positive time",
-            );
+        if let Err(reason) = self.wind.validate() {
+            return bad("wind", reason);
         }
         let ceiling = self.scenario.area.ceiling;
         if !(self.takeoff_altitude_m.is_finite()
@@ -828,17 +819,7 @@ impl SitlWorld {
             }
         }
         if self.flight_start.is_some() && self.ending.is_none() {
-            let h = &self.world.herders;
-            let mut closest = f64::INFINITY;
-            for i in 0..h.len() {
-                for j in i + 1..h.len() {
-                    let d = ((h[i][0] - h[j][0]).powi(2)
-                        + (h[i][1] - h[j][1]).powi(2)
-                        + (h[i][2] - h[j][2]).powi(2))
-                    .sqrt();
-                    closest = closest.min(d);
-                }
-            }
+            let closest = closest_pair_m(&self.world.herders);
             self.min_separation_m = self.min_separation_m.min(closest);
             if closest < self.config.separation_m {
                 self.separation_breaches += 1;

@@ -141,6 +141,19 @@ fn read(path: &Path, what: &str) -> Result<Vec<u8>> {
     Ok(bytes)
 }
 
+/// `A,B`: two finite numbers, or an error naming `flag` and the `form` it wants.
+fn finite_pair(spec: &str, flag: &str, form: &str) -> Result<[f32; 2]> {
+    let parts: Vec<f32> = spec
+        .split(',')
+        .map(|v| v.trim().parse::<f32>())
+        .collect::<Result<_, _>>()
+        .with_context(|| format!("{flag} must be {form}, got {spec:?}"))?;
+    match parts[..] {
+        [a, b] if a.is_finite() && b.is_finite() => Ok([a, b]),
+        _ => bail!("{flag} must be two finite numbers {form}, got {spec:?}"),
+    }
+}
+
 fn run(args: RunArgs) -> Result<()> {
     let model_bytes = read(&args.model, "model file")?;
     let actor = Actor::from_bytes(&model_bytes)
@@ -205,13 +218,8 @@ fn run(args: RunArgs) -> Result<()> {
     }
     config.takeoff_altitude = args.takeoff_alt_m;
     if let Some(spec) = &args.braking {
-        let parts: Vec<f32> = spec
-            .split(',')
-            .map(|v| v.trim().parse::<f32>())
-            .collect::<Result<_, _>>()
-            .with_context(|| format!("--braking must be DECELERATION,LAG, got {spec:?}"))?;
-        match parts[..] {
-            [a, lag] if a.is_finite() && a > 0.0 && lag.is_finite() && lag >= 0.0 => {
+        match finite_pair(spec, "--braking", "DECELERATION,LAG")? {
+            [a, lag] if a > 0.0 && lag >= 0.0 => {
                 config.braking = Some(skyherd_onboard::safety::Braking {
                     deceleration: a,
                     lag_s: lag,
@@ -221,17 +229,7 @@ fn run(args: RunArgs) -> Result<()> {
         }
     }
     if let Some(spec) = &args.local_origin {
-        let parts: Vec<f32> = spec
-            .split(',')
-            .map(|v| v.trim().parse::<f32>())
-            .collect::<Result<_, _>>()
-            .with_context(|| format!("--local-origin must be EAST,NORTH metres, got {spec:?}"))?;
-        match parts[..] {
-            [east, north] if east.is_finite() && north.is_finite() => {
-                config.local_origin = [east, north];
-            }
-            _ => bail!("--local-origin must be two finite numbers EAST,NORTH, got {spec:?}"),
-        }
+        config.local_origin = finite_pair(spec, "--local-origin", "EAST,NORTH metres")?;
     }
     if !(config.max_speed.is_finite() && config.max_speed > 0.0) {
         bail!(

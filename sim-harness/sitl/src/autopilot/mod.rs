@@ -752,20 +752,13 @@ impl MockAutopilot {
         }
         let yaw = mask & 0x400 == 0;
         let yaw_rate = mask & 0x800 == 0;
-        let mut used = Vec::with_capacity(8);
-        if position {
-            used.extend([s.x, s.y, s.z]);
-        }
-        if velocity {
-            used.extend([s.vx, s.vy, s.vz]);
-        }
-        if yaw {
-            used.push(s.yaw);
-        }
-        if yaw_rate {
-            used.push(s.yaw_rate);
-        }
-        if used.iter().any(|c| !c.is_finite()) {
+        // Only the fields the mask uses must be numbers.
+        let finite = |used: bool, values: &[f32]| !used || values.iter().all(|c| c.is_finite());
+        let all_finite = finite(position, &[s.x, s.y, s.z])
+            && finite(velocity, &[s.vx, s.vy, s.vz])
+            && finite(yaw, &[s.yaw])
+            && finite(yaw_rate, &[s.yaw_rate]);
+        if !all_finite {
             self.rejections.non_finite += 1;
             return;
         }
