@@ -69,6 +69,16 @@ pub struct SeparationConfig {
     pub peer_speed_bound: f32,
     /// Rounds over the peers.
     pub passes: u8,
+    /// How long the vehicle takes to turn a new velocity into flight, s (0: at once). Over it
+    /// both drones keep closing at today's speed, so the gap the rule shares out shrinks by
+    /// `closing * response_lag_s` first: with an autopilot's lag `tau`, `tau` plus the time
+    /// its jerk limit takes to reach full acceleration (`skyherd-onboard --braking`'s LAG).
+    pub response_lag_s: f32,
+    /// How hard the vehicle can change its velocity, m/s² (infinity: at once). A pair closing
+    /// at `c` needs `c² / (2 a)` more room to stop closing when each takes half of it
+    /// (`c² / (2 a)` with `a` the sum of both decelerations, `2 a` here), the whole of it
+    /// against a stale peer.
+    pub max_deceleration: f32,
 }
 
 impl SeparationConfig {
@@ -82,6 +92,8 @@ impl SeparationConfig {
             max_peer_age_s: 0.5,
             peer_speed_bound: 5.0,
             passes: 3,
+            response_lag_s: 0.0,
+            max_deceleration: f32::INFINITY,
         }
     }
 
@@ -95,6 +107,8 @@ impl SeparationConfig {
             max_peer_age_s: 0.5,
             peer_speed_bound: 0.5,
             passes: 3,
+            response_lag_s: 0.0,
+            max_deceleration: f32::INFINITY,
         }
     }
 }
@@ -204,17 +218,37 @@ fn half_space(
     } else {
         [1.0, 0.0, 0.0]
     };
-    let allowed = if d < radius {
+    // A stale peer's old velocity is no use: it is taken as standing still.
+    let closing = if stale {
+        dot(own_velocity, n)
+    } else {
+        dot(sub(own_velocity, peer.velocity), n)
+    };
+    // What the lag lets the pair close before a new velocity takes hold.
+    let lag = if config.response_lag_s.is_finite() {
+        config.response_lag_s.max(0.0)
+    } else {
+        0.0
+    };
+    let closing_now = closing.max(0.0);
+    // Both drones brake on a fresh peer's half-space; against a stale one, only this one.
+    let braking = if stale { 1.0 } else { 2.0 } * config.max_deceleration;
+    let to_stop = if braking.is_finite() && braking > 0.0 {
+        closing_now * closing_now / (2.0 * braking)
+    } else {
+        0.0
+    };
+    let gap = d - radius - closing_now * lag - to_stop;
+    let allowed = if d < radius || gap < 0.0 {
         -config.escape_speed.max(0.0)
     } else {
-        (d - radius) / config.horizon_s.max(1e-3)
+        gap / config.horizon_s.max(1e-3)
     };
     if stale {
-        // No help from the peer and no use for its old velocity: all of it is ours.
+        // No help from the peer: all of the correction is ours.
         return (n, allowed);
     }
     let share = config.share.clamp(1e-3, 1.0);
-    let closing = dot(sub(own_velocity, peer.velocity), n);
     (n, dot(own_velocity, n) + share * (allowed - closing))
 }
 
@@ -289,6 +323,50 @@ mod tests {
         (min, pos)
     }
 
+    /// Drones that decide every `dt` seconds and reach the rule's velocity through a
+    /// first-order lag of `tau` seconds, flown in 10 ms sub-steps; they start at their
+    /// requests' velocity and the rule sees what they fly. The smallest distance seen.
+    fn fly_lagging(
+        config: &SeparationConfig,
+        start: &[[f32; 3]],
+        requests: &[[f32; 3]],
+        seconds: f32,
+        dt: f32,
+        tau: f32,
+    ) -> (f32, Vec<[f32; 3]>) {
+        let mut pos = start.to_vec();
+        let mut vel = requests.to_vec();
+        let mut min = f32::INFINITY;
+        let h = 0.01f32;
+        let subs = (dt / h).round() as usize;
+        for _ in 0..(seconds / dt) as usize {
+            let mut command = vel.clone();
+            for i in 0..pos.len() {
+                let peers: Vec<Peer> = (0..pos.len())
+                    .filter(|&j| j != i)
+                    .map(|j| Peer {
+                        position: pos[j],
+                        velocity: vel[j],
+                        age_s: 0.0,
+                    })
+                    .collect();
+                command[i] = separate(config, pos[i], vel[i], requests[i], &peers).velocity;
+            }
+            for _ in 0..subs {
+                for ((p, v), c) in pos.iter_mut().zip(vel.iter_mut()).zip(&command) {
+                    *v = core::array::from_fn(|a| v[a] + (c[a] - v[a]) * (h / tau));
+                    *p = core::array::from_fn(|a| p[a] + v[a] * h);
+                }
+                for i in 0..pos.len() {
+                    for j in i + 1..pos.len() {
+                        min = min.min(norm(sub(pos[i], pos[j])));
+                    }
+                }
+            }
+        }
+        (min, pos)
+    }
+
     #[test]
     fn head_on_drones_keep_the_separation_and_pass_on_the_right() {
         let config = SeparationConfig::arena();
@@ -307,6 +385,35 @@ mod tests {
         // They got past each other, each keeping to its right (south for the eastbound one).
         assert!(pos[0][0] > pos[1][0], "{pos:?}");
         assert!(pos[0][1] < pos[1][1], "{pos:?}");
+    }
+
+    #[test]
+    fn lagging_drones_keep_the_separation_only_when_the_rule_counts_the_lag() {
+        // The simulator's 1 s decisions with vehicles that take about 2 s to answer (PX4's
+        // jerk-limited mission trajectory turning 5 m/s round, `px4-auto`): drones crossing at
+        // 5 m/s each, the rule that assumes an instant answer lets the pair into the
+        // separation, the one that counts the lag does not.
+        let start = [[0.0, 0.0, 2.0], [20.0, -20.0, 2.0]];
+        let requests = [[5.0, 0.0, 0.0], [0.0, 5.0, 0.0]];
+        let tau = 2.0;
+        let instant = SeparationConfig::arena();
+        let (min, _) = fly_lagging(&instant, &start, &requests, 12.0, 1.0, tau);
+        assert!(min < instant.min_separation, "{min}");
+        let lagging = SeparationConfig {
+            response_lag_s: tau,
+            max_deceleration: 3.0,
+            ..instant
+        };
+        let (min, pos) = fly_lagging(&lagging, &start, &requests, 12.0, 1.0, tau);
+        assert!(min >= lagging.min_separation - 1e-3, "{min}");
+        assert!(
+            pos[0][0] > 20.0 && pos[1][1] > 0.0,
+            "they still get past: {pos:?}"
+        );
+        // Drones that answer at once see no difference.
+        let (a, _) = fly(&instant, &start, &requests, 12.0, 0.1);
+        let (b, _) = fly(&lagging, &start, &requests, 12.0, 0.1);
+        assert!((a - b).abs() < 1e-3 || b > a, "{a} {b}");
     }
 
     #[test]

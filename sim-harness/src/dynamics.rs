@@ -19,8 +19,32 @@
 //! 4. Velocity and position integrate (semi-implicit Euler); a drone on the ground (`z <= 0`)
 //!    stays there and loses its downward velocity.
 //!
-//! [`DynamicsLimits::px4`] carries PX4's defaults, from its parameter definitions
-//! (`src/modules/mc_pos_control/*_params.yaml` in PX4-Autopilot):
+//! # The presets
+//! How a multicopter answers a velocity setpoint depends on the autopilot's mode, so there are
+//! two PX4 sets (values from PX4-Autopilot's parameter definitions,
+//! `src/modules/mc_pos_control/*_params.yaml` and `mc_att_control_params.c`):
+//!
+//! * [`DynamicsLimits::px4`]: **Offboard** velocity setpoints, which is how the daemon flies.
+//!   PX4 feeds them straight to its velocity controller (`PositionControl::_velocityControl`):
+//!   `MPC_ACC_HOR` and `MPC_JERK_*` shape only PX4's own position-mode and mission
+//!   trajectories, not Offboard setpoints (PX4-Autopilot issue #27612; pull request #20323, a
+//!   jerk limit in the controller, was turned down). What bounds the response is the velocity
+//!   loop, the tilt limit and the attitude loop:
+//!
+//! | field | from | value |
+//! |---|---|---|
+//! | `time_constant` | 1 / `MPC_XY_VEL_P_ACC` (1.8 /s) | 0.55 s |
+//! | `max_accel_horizontal` | g tan(`MPC_TILTMAX_AIR` = 45 deg) | 9.8 m/s^2 |
+//! | `max_accel_up` | g (`MPC_THR_MAX` / `MPC_THR_HOVER` - 1) = g (1 / 0.5 - 1) | 9.8 m/s^2 |
+//! | `max_accel_down` | g (1 - `MPC_THR_MIN` / `MPC_THR_HOVER`) = g (1 - 0.12 / 0.5) | 7.5 m/s^2 |
+//! | `max_jerk` | the tilt follows the attitude loop in 1 / `MC_ROLL_P` (6.5) = 0.15 s: 9.8 / 0.15 | 65 m/s^3 |
+//! | `max_speed_horizontal` | `MPC_XY_VEL_MAX` | 12.0 m/s |
+//! | `max_speed_up` / `max_speed_down` | `MPC_Z_VEL_MAX_UP` / `MPC_Z_VEL_MAX_DN` | 3.0 / 1.5 m/s |
+//! | `takeoff_speed` / `land_speed` | `MPC_TKO_SPEED` / `MPC_LAND_SPEED` | 1.5 / 0.7 m/s |
+//!
+//! * [`DynamicsLimits::px4_auto`]: PX4's jerk-limited trajectory of its position and mission
+//!   modes, applied to every setpoint: a harsher stand-in for an autopilot that smooths
+//!   velocity commands (ArduCopter's Guided mode shapes them too):
 //!
 //! | field | PX4 parameter | default |
 //! |---|---|---|
@@ -28,14 +52,13 @@
 //! | `max_accel_up` | `MPC_ACC_UP_MAX` (multicopter_altitude_mode_params) | 4.0 m/s^2 |
 //! | `max_accel_down` | `MPC_ACC_DOWN_MAX` (multicopter_altitude_mode_params) | 3.0 m/s^2 |
 //! | `max_jerk` | `MPC_JERK_AUTO` (multicopter_autonomous_params) | 4.0 m/s^3 |
-//! | `max_speed_horizontal` | `MPC_XY_VEL_MAX` (multicopter_position_control_limits_params) | 12.0 m/s |
-//! | `max_speed_up` | `MPC_Z_VEL_MAX_UP` (same file) | 3.0 m/s |
-//! | `max_speed_down` | `MPC_Z_VEL_MAX_DN` (same file) | 1.5 m/s |
-//! | `takeoff_speed` | `MPC_TKO_SPEED` (multicopter_takeoff_land_params) | 1.5 m/s |
-//! | `land_speed` | `MPC_LAND_SPEED` (same file) | 0.7 m/s |
 //!
-//! The time constant (0.3 s) and the drag (0.2 /s) are not PX4 parameters: they stand for the
-//! velocity loop's tracking lag and a small quadrotor's linear drag.
+//!   with the Offboard set's speeds, a 0.3 s lag and the same takeoff and landing rates.
+//!
+//! * [`DynamicsLimits::indoor`]: the room's drones, PX4 in Offboard as above, with the room's
+//!   speed caps (1 m/s across, 0.5 m/s up and down) and a cautious indoor tilt limit of 20 deg.
+//!
+//! The drag (0.2 /s) is not a PX4 parameter: it stands for a small quadrotor's linear drag.
 //!
 //! ```
 //! use skyherd_sim::dynamics::{DynamicsLimits, Multicopter};
@@ -43,7 +66,7 @@
 //! let mut drone = Multicopter::hovering_at([0.0, 0.0, 2.0]);
 //! // Asked for 5 m/s east from a hover, a drone does not get there in one step.
 //! drone.step([5.0, 0.0, 0.0], [0.0; 3], &limits, 0.1);
-//! assert!(drone.velocity[0] > 0.0 && drone.velocity[0] < 0.5);
+//! assert!(drone.velocity[0] > 0.0 && drone.velocity[0] < 1.0);
 //! for _ in 0..100 {
 //!     drone.step([5.0, 0.0, 0.0], [0.0; 3], &limits, 0.1);
 //! }
@@ -83,40 +106,62 @@ pub struct DynamicsLimits {
 }
 
 impl DynamicsLimits {
-    /// PX4's defaults (see the module docs for the parameters).
+    /// PX4 flying Offboard velocity setpoints (see the module docs for where each value
+    /// comes from).
     pub const fn px4() -> Self {
         Self {
-            max_accel_horizontal: 3.0,
-            max_accel_up: 4.0,
-            max_accel_down: 3.0,
-            max_jerk: 4.0,
+            max_accel_horizontal: 9.8,
+            max_accel_up: 9.8,
+            max_accel_down: 7.5,
+            max_jerk: 65.0,
             max_speed_horizontal: 12.0,
             max_speed_up: 3.0,
             max_speed_down: 1.5,
-            time_constant: 0.3,
+            time_constant: 0.55,
             drag: 0.2,
             takeoff_speed: 1.5,
             land_speed: 0.7,
         }
     }
 
-    /// The indoor room's drones: PX4's shape scaled to small, slow vehicles in a 10 m room
-    /// (the preset's 0.5 m/s herders): accelerations and jerk a sixth of PX4's, speeds capped
-    /// at 1 m/s horizontally, 0.5 m/s up and down.
+    /// PX4's jerk-limited position-mode and mission trajectory limits applied to every
+    /// setpoint (`MPC_ACC_HOR`, `MPC_ACC_UP_MAX`, `MPC_ACC_DOWN_MAX`, `MPC_JERK_AUTO`): how an
+    /// autopilot that smooths velocity commands flies them.
+    pub const fn px4_auto() -> Self {
+        Self {
+            max_accel_horizontal: 3.0,
+            max_accel_up: 4.0,
+            max_accel_down: 3.0,
+            max_jerk: 4.0,
+            time_constant: 0.3,
+            ..Self::px4()
+        }
+    }
+
+    /// The indoor room's drones: PX4 in Offboard with the room's speed caps (1 m/s across,
+    /// 0.5 m/s up and down, as the preset's 1 m/s herders), a 20 deg tilt limit (g tan 20 deg
+    /// = 3.6 m/s^2, the jerk bound scaled with it) and gentle takeoff and landing.
     pub const fn indoor() -> Self {
         Self {
-            max_accel_horizontal: 0.5,
-            max_accel_up: 0.7,
-            max_accel_down: 0.5,
-            max_jerk: 0.7,
+            max_accel_horizontal: 3.6,
+            max_accel_up: 3.0,
+            max_accel_down: 2.0,
+            max_jerk: 24.0,
             max_speed_horizontal: 1.0,
             max_speed_up: 0.5,
             max_speed_down: 0.5,
-            time_constant: 0.3,
+            time_constant: 0.55,
             drag: 0.2,
             takeoff_speed: 0.3,
             land_speed: 0.2,
         }
+    }
+
+    /// How long a new horizontal velocity takes to take hold from a steady flight, s: the lag
+    /// plus the time the jerk limit needs to reach full acceleration (what a separation rule
+    /// must count; braking from full speed takes twice the ramp).
+    pub fn response_lag_s(&self) -> f64 {
+        self.time_constant + self.max_accel_horizontal / self.max_jerk
     }
 
     /// Every field finite and positive: on failure, the field's name.
@@ -350,7 +395,7 @@ mod tests {
 
     #[test]
     fn a_step_response_respects_the_acceleration_and_jerk_limits() {
-        let limits = DynamicsLimits::px4();
+        let limits = DynamicsLimits::px4_auto();
         let dt = 0.01;
         let mut drone = Multicopter::hovering_at([0.0, 0.0, 5.0]);
         let trace = run(&mut drone, [10.0, 0.0, 0.0], &limits, 10.0, dt);
@@ -370,6 +415,43 @@ mod tests {
         assert!((trace.last().unwrap().velocity[0] - 10.0).abs() < 0.01);
         let peak = trace.iter().map(|s| s.velocity[0]).fold(0.0, f64::max);
         assert!(peak < 10.3, "overshoot to {peak}");
+    }
+
+    #[test]
+    fn offboard_setpoints_follow_the_velocity_loop_lag() {
+        let limits = DynamicsLimits::px4();
+        let dt = 0.01;
+        let mut drone = Multicopter::hovering_at([0.0, 0.0, 5.0]);
+        let trace = run(&mut drone, [1.0, 0.0, 0.0], &limits, 5.0, dt);
+        // A first-order lag of 1 / MPC_XY_VEL_P_ACC: about 1 - 1/e of the step after 0.55 s
+        // (the attitude loop's jerk bound costs a few hundredths), all of it after 5 lags.
+        let at_tau = trace[54].velocity[0];
+        assert!(at_tau > 0.58 && at_tau < 0.64, "{at_tau}");
+        assert!((trace.last().unwrap().velocity[0] - 1.0).abs() < 1e-3);
+        // A 10 m/s step asks for more than the tilt gives: 9.8 m/s^2 at most, the jerk within
+        // the attitude loop's 65 m/s^3.
+        let mut fast = Multicopter::hovering_at([0.0, 0.0, 5.0]);
+        let trace = run(&mut fast, [10.0, 0.0, 0.0], &limits, 3.0, dt);
+        let mut previous = Multicopter::hovering_at([0.0, 0.0, 5.0]);
+        let mut peak = 0.0f64;
+        for s in &trace {
+            let accel = (s.velocity[0] - previous.velocity[0]) / dt;
+            peak = peak.max(accel);
+            let jerk = (s.commanded_accel[0] - previous.commanded_accel[0]).abs() / dt;
+            assert!(jerk <= limits.max_jerk + 1e-9, "{jerk}");
+            previous = *s;
+        }
+        assert!((peak - 9.8).abs() < 1e-6, "{peak}");
+        // The room's drones reach their 1 m/s cap within 2 s.
+        let mut room = Multicopter::hovering_at([0.0, 0.0, 1.0]);
+        let trace = run(
+            &mut room,
+            [3.0, 0.0, 0.0],
+            &DynamicsLimits::indoor(),
+            2.0,
+            dt,
+        );
+        assert!((trace.last().unwrap().velocity[0] - 1.0).abs() < 0.03);
     }
 
     #[test]
@@ -426,7 +508,7 @@ mod tests {
 
     #[test]
     fn stopping_from_1_m_s_takes_about_the_px4_distance() {
-        let limits = DynamicsLimits::px4();
+        let limits = DynamicsLimits::px4_auto();
         let mut drone = Multicopter::hovering_at([0.0, 0.0, 3.0]);
         run(&mut drone, [1.0, 0.0, 0.0], &limits, 5.0, 0.01);
         assert!((drone.stopping_distance(&limits) - 1.0 / 6.0).abs() < 0.01);
@@ -451,6 +533,7 @@ mod tests {
         assert!(drone.position.iter().all(|p| p.is_finite()));
         assert_eq!(DynamicsLimits::px4().validate(), Ok(()));
         assert_eq!(DynamicsLimits::indoor().validate(), Ok(()));
+        assert_eq!(DynamicsLimits::px4_auto().validate(), Ok(()));
         let broken = DynamicsLimits {
             max_jerk: 0.0,
             ..DynamicsLimits::px4()
@@ -511,9 +594,9 @@ mod tests {
             drone.step([0.0; 3], [5.0, 0.0, 0.0], &limits, 0.05);
         }
         // Without an integrator, a steady wind leaves a small steady drift:
-        // tau drag w = 0.3 * 0.2 * 5 = 0.3 m/s.
+        // tau drag w = 0.55 * 0.2 * 5 = 0.55 m/s.
         assert!(
-            (drone.velocity[0] - 0.3).abs() < 0.01,
+            (drone.velocity[0] - 0.55).abs() < 0.01,
             "{}",
             drone.velocity[0]
         );
@@ -523,7 +606,7 @@ mod tests {
             drone.step([-2.0, 0.0, 0.0], [5.0, 0.0, 0.0], &limits, 0.05);
         }
         assert!(
-            (drone.velocity[0] + 1.7).abs() < 0.01,
+            (drone.velocity[0] + 1.45).abs() < 0.01,
             "{}",
             drone.velocity[0]
         );

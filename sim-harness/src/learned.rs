@@ -75,6 +75,9 @@ pub struct ActorPolicy<A> {
     flight_rules: bool,
     /// Whether the daemon's separation rule applies (see [`ActorPolicy::keeping_apart`]).
     keep_apart: bool,
+    /// The herders' response lag (s) and deceleration (m/s²) the separation rule counts (see
+    /// [`ActorPolicy::responding_in`]).
+    response: (f32, f32),
     /// The last step seen (`None` after a reset) and its herder positions, for the peers'
     /// velocities.
     previous_step: Option<u64>,
@@ -97,6 +100,7 @@ impl<A: Infer> ActorPolicy<A> {
             features: [0.0; FEATURES],
             flight_rules: false,
             keep_apart: false,
+            response: (0.0, f32::INFINITY),
             previous_step: None,
             previous: Vec::new(),
             velocities: Vec::new(),
@@ -114,8 +118,29 @@ impl<A: Infer> ActorPolicy<A> {
         self
     }
 
+    /// The separation rule counts herders that take `lag_s` seconds to fly a new velocity and
+    /// change it at `deceleration` m/s² at most (`SeparationConfig::response_lag_s` and
+    /// `max_deceleration`; with a motion model, [`DynamicsLimits::response_lag_s`] and its
+    /// horizontal acceleration). The default, (0, infinity): they fly it at once.
+    ///
+    /// [`DynamicsLimits::response_lag_s`]: crate::dynamics::DynamicsLimits::response_lag_s
+    pub fn responding_in(mut self, lag_s: f32, deceleration: f32) -> Self {
+        let lag = if lag_s.is_finite() {
+            lag_s.max(0.0)
+        } else {
+            0.0
+        };
+        let decel = if deceleration > 0.0 {
+            deceleration
+        } else {
+            f32::INFINITY
+        };
+        self.response = (lag, decel);
+        self
+    }
+
     /// The separation rule's settings for `world`: the room's (0.5 m) or the arena's (3 m).
-    fn separation(world: &World) -> SeparationConfig {
+    fn separation(&self, world: &World) -> SeparationConfig {
         let breach = world.area.breach_distance_m() as f32;
         let base = if breach <= 1.0 {
             SeparationConfig::room()
@@ -125,6 +150,8 @@ impl<A: Infer> ActorPolicy<A> {
         SeparationConfig {
             min_separation: breach * KEEP_APART_MARGIN,
             peer_speed_bound: world.limits.herder as f32,
+            response_lag_s: self.response.0,
+            max_deceleration: self.response.1,
             ..base
         }
     }
@@ -226,7 +253,7 @@ impl<A: Infer> Policy for ActorPolicy<A> {
         // Keep apart first; the flight rules still have the last word (as in the daemon).
         let request = match own {
             Some(position) if self.keep_apart && encoded.is_ok() => {
-                let config = Self::separation(world);
+                let config = self.separation(world);
                 self.peers.clear();
                 for (i, p) in world.herders.iter().enumerate() {
                     if i != herder {
@@ -308,6 +335,7 @@ pub struct ModelPolicy {
     name: String,
     actor: Actor<'static>,
     keep_apart: bool,
+    response: (f32, f32),
 }
 
 impl ModelPolicy {
@@ -337,6 +365,7 @@ impl ModelPolicy {
             name,
             actor: Actor::from_bytes(bytes)?,
             keep_apart: false,
+            response: (0.0, f32::INFINITY),
         })
     }
 
@@ -345,6 +374,13 @@ impl ModelPolicy {
     pub fn keeping_apart(mut self) -> Self {
         self.keep_apart = true;
         self.name.push_str("+apart");
+        self
+    }
+
+    /// The same model, its separation rule counting herders that answer in `lag_s` seconds
+    /// and change velocity at `deceleration` m/s² at most ([`ActorPolicy::responding_in`]).
+    pub fn responding_in(mut self, lag_s: f32, deceleration: f32) -> Self {
+        self.response = (lag_s, deceleration);
         self
     }
 
@@ -360,7 +396,11 @@ impl PolicyFactory for ModelPolicy {
     }
 
     fn make(&self) -> Box<dyn Policy + Send> {
-        Box::new(ActorPolicy::flying(self.actor).keeping_apart(self.keep_apart))
+        Box::new(
+            ActorPolicy::flying(self.actor)
+                .keeping_apart(self.keep_apart)
+                .responding_in(self.response.0, self.response.1),
+        )
     }
 }
 

@@ -17,6 +17,6 @@ pub mod world;
 pub use env::{BatchEnv, Env, EnvError, EpisodeInfo, EpisodeSummary, StepOutcome, run_episode};
 pub use policy::{Policy, PolicyFactory};
 pub use reward::{RewardCorrection, RewardParams, RewardTerms};
-pub use scenario::{HerderCount, Scenario, ScenarioError};
+pub use scenario::{HerderCount, HerderDynamics, Scenario, ScenarioError};
 pub use skyherd_model::Task;
 pub use world::{World, WorldError};

@@ -81,6 +81,42 @@ pub struct HerderDynamics {
     pub wind: crate::dynamics::WindConfig,
 }
 
+impl HerderDynamics {
+    /// The motion models by name: `px4` ([`DynamicsLimits::px4`](crate::dynamics::DynamicsLimits::px4)),
+    /// `px4-auto` ([`DynamicsLimits::px4_auto`](crate::dynamics::DynamicsLimits::px4_auto)) and
+    /// `indoor` ([`DynamicsLimits::indoor`](crate::dynamics::DynamicsLimits::indoor)).
+    pub const LIMITS: [&'static str; 3] = ["px4", "px4-auto", "indoor"];
+    /// The winds by name: `calm`, `arena` and `room` ([`WindConfig`](crate::dynamics::WindConfig)).
+    pub const WINDS: [&'static str; 3] = ["calm", "arena", "room"];
+
+    /// A named motion model in a named wind (the names of [`Self::LIMITS`] and [`Self::WINDS`],
+    /// as `skyherd-sim eval --dynamics --wind` and the trainer's configs take them); `None` when
+    /// either name is not one of them.
+    ///
+    /// ```
+    /// use skyherd_sim::HerderDynamics;
+    /// let room = HerderDynamics::named("indoor", "room").unwrap();
+    /// assert_eq!(room.limits.max_speed_horizontal, 1.0);
+    /// assert!(HerderDynamics::named("indoor", "gale").is_none());
+    /// ```
+    pub fn named(limits: &str, wind: &str) -> Option<HerderDynamics> {
+        use crate::dynamics::{DynamicsLimits, WindConfig};
+        let limits = match limits {
+            "px4" => DynamicsLimits::px4(),
+            "px4-auto" => DynamicsLimits::px4_auto(),
+            "indoor" => DynamicsLimits::indoor(),
+            _ => return None,
+        };
+        let wind = match wind {
+            "calm" => WindConfig::CALM,
+            "arena" => WindConfig::arena(),
+            "room" => WindConfig::room(),
+            _ => return None,
+        };
+        Some(HerderDynamics { limits, wind })
+    }
+}
+
 /// The herder count M: fixed, or `2^floor(log2(N)/2)` (TOML: an integer or `"adaptive"`).
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
 pub enum HerderCount {

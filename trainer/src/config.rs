@@ -69,6 +69,17 @@ pub struct EvolutionScenario {
     /// The indoor room's layout at paper scale (as `training.room_layout_fraction` draws).
     #[serde(default)]
     pub room: bool,
+    /// The indoor preset itself instead of the paper arena: the 10 x 10 x 3 m room at 0.1 s
+    /// steps, as the mission flies it (its N and M are this entry's).
+    #[serde(default)]
+    pub indoor: bool,
+    /// Fly the herders through a motion model (`skyherd_sim::HerderDynamics::named`: `px4` or
+    /// `indoor`) instead of at their commands; absent, at once (the paper's protocol).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub dynamics: Option<String>,
+    /// The wind with `dynamics`: `calm` (the default), `arena` or `room`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub wind: Option<String>,
     /// Episodes per perturbed actor per generation.
     pub episodes: usize,
 }
@@ -81,7 +92,30 @@ impl EvolutionScenario {
             targets,
             herders,
             room: false,
+            indoor: false,
+            dynamics: None,
+            wind: None,
             episodes,
+        }
+    }
+
+    /// The motion model and wind it names, if any; the error says which name is unknown.
+    pub fn herder_dynamics(&self) -> Result<Option<skyherd_sim::HerderDynamics>, String> {
+        match (&self.dynamics, &self.wind) {
+            (None, None) => Ok(None),
+            (None, Some(_)) => {
+                Err("`wind` needs `dynamics`: without a motion model nothing feels it".into())
+            }
+            (Some(d), w) => {
+                let w = w.as_deref().unwrap_or("calm");
+                skyherd_sim::HerderDynamics::named(d, w).map(Some).ok_or_else(|| {
+                    format!(
+                        "dynamics `{d}` in wind `{w}`: the motion models are {:?} and the winds {:?}",
+                        skyherd_sim::HerderDynamics::LIMITS,
+                        skyherd_sim::HerderDynamics::WINDS
+                    )
+                })
+            }
         }
     }
 
@@ -788,6 +822,20 @@ impl TrainConfig {
                 "every scenario needs targets >= 1 and episodes >= 1",
             );
         }
+        for s in &ev.scenarios {
+            if let Err(reason) = s.herder_dynamics() {
+                return Err(ConfigError::Invalid {
+                    field: "evolution.scenarios",
+                    reason,
+                });
+            }
+            if s.indoor && s.room {
+                return bad(
+                    "evolution.scenarios",
+                    "`indoor` (the room itself) and `room` (its layout at paper scale) exclude each other",
+                );
+            }
+        }
         if !(ev.sigma > 0.0 && ev.sigma.is_finite()) {
             return bad("evolution.sigma", "must be finite and > 0");
         }
@@ -900,6 +948,37 @@ mod tests {
         )
         .unwrap_err();
         assert!(err.to_string().contains("evolution.scenarios"), "{err}");
+    }
+
+    #[test]
+    fn evolution_scenarios_name_their_dynamics_and_the_indoor_preset() {
+        let room = "[evolution]\nscenarios = [{ task = \"driving\", targets = 4, herders = 2, indoor = true, dynamics = \"indoor\", wind = \"room\", episodes = 2 }]";
+        let c = TrainConfig::from_toml_str(room).expect("a room scenario with dynamics");
+        let s = &c.evolution.scenarios[0];
+        let d = s.herder_dynamics().unwrap().expect("dynamics on");
+        assert_eq!(d.limits.max_speed_horizontal, 1.0);
+        let flown = crate::evolve::scenario_of(s, 300);
+        assert_eq!(
+            (flown.area.width, flown.dt, flown.step_limit),
+            (10.0, 0.1, 300)
+        );
+        assert_eq!(flown.dynamics, Some(d));
+        // Unknown names, wind without dynamics, and both layouts at once are refused by name.
+        for (bad, says) in [
+            ("dynamics = \"jet\"", "the motion models are"),
+            ("dynamics = \"px4\", wind = \"gale\"", "gale"),
+            ("wind = \"room\"", "`wind` needs `dynamics`"),
+            ("room = true, indoor = true", "exclude each other"),
+        ] {
+            let text = format!(
+                "[evolution]\nscenarios = [{{ task = \"driving\", targets = 4, herders = 2, episodes = 2, {bad} }}]"
+            );
+            let err = TrainConfig::from_toml_str(&text).unwrap_err().to_string();
+            assert!(
+                err.contains("evolution.scenarios") && err.contains(says),
+                "{bad}: {err}"
+            );
+        }
     }
 
     #[test]

@@ -168,6 +168,7 @@ impl TeachScenario {
             herders: self.herders,
             room: self.room,
             episodes: self.episodes,
+            ..EvolutionScenario::paper(self.task, self.targets, self.herders, self.episodes)
         }
     }
 }

@@ -51,7 +51,7 @@ use rayon::prelude::*;
 use skyherd_model::Task;
 use skyherd_sim::env::run_episode;
 use skyherd_sim::world::World;
-use skyherd_sim::{Env, EnvError, Scenario};
+use skyherd_sim::{Env, EnvError, HerderCount, Scenario};
 
 use crate::config::{EvolutionConfig, EvolutionScenario, RewardConfig};
 use crate::network::MultiTaskMlp;
@@ -127,6 +127,22 @@ pub(crate) fn set_head_parameters(actor: &mut MultiTaskMlp, task: usize, theta: 
 
 /// The simulator scenario of one configured evolution scenario (test-time noise on).
 pub fn scenario_of(s: &EvolutionScenario, step_limit: u64) -> Scenario {
+    // A config's names were checked when it loaded; one built in code with a bad name flies
+    // without dynamics rather than panicking.
+    let dynamics = s.herder_dynamics().ok().flatten();
+    if s.indoor {
+        let mut room = Scenario::indoor();
+        room.task = s.task;
+        room.targets = s.targets;
+        room.herders = if s.herders == 0 {
+            HerderCount::Adaptive
+        } else {
+            HerderCount::Fixed(s.herders)
+        };
+        room.step_limit = step_limit;
+        room.dynamics = dynamics;
+        return room;
+    }
     let draw = Draw {
         task: s.task,
         targets: s.targets,
@@ -135,7 +151,9 @@ pub fn scenario_of(s: &EvolutionScenario, step_limit: u64) -> Scenario {
         goal_distance_permille: 1000,
     };
     // The score reads only success and time, so the reward settings do not matter here.
-    training_scenario(draw, step_limit, true, &RewardConfig::default(), 0.99)
+    let mut scenario = training_scenario(draw, step_limit, true, &RewardConfig::default(), 0.99);
+    scenario.dynamics = dynamics;
+    scenario
 }
 
 /// How an episode is scored: `time / lower bound` when it succeeds, else

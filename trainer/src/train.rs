@@ -55,6 +55,14 @@ pub enum TrainError {
     /// The thread pool could not be built.
     #[error("thread pool: {0}")]
     Threads(String),
+    /// An actor file the evolution stage was to start from does not fit the config.
+    #[error("actor {path} does not fit the config: {reason}")]
+    ActorShape {
+        /// The actor file.
+        path: String,
+        /// What differs.
+        reason: String,
+    },
     /// The fine-tune's actor does not fit the config.
     #[error("fine_tune.actor {path}: {reason}")]
     FineTuneActor {
@@ -112,6 +120,53 @@ pub struct EvolutionOutcome {
     pub eval: Vec<EvalRow>,
     /// Wall-clock seconds the stage took.
     pub wall_s: f64,
+}
+
+/// A checkpoint holding the actor file at `path` and a fresh critic of `config`'s shape, at
+/// step 0: what the evolution stage needs to start from a shipped actor. The actor must have the
+/// config's inputs, tasks, outputs and hidden layers.
+pub fn checkpoint_of_actor(config: &TrainConfig, path: &Path) -> Result<Checkpoint, TrainError> {
+    let actor = checkpoint::load_actor(path)?;
+    let mut rng = ChaCha8Rng::seed_from_u64(config.seed);
+    let mut agent = Agent::new(
+        feature_count(config.encoder_version).unwrap_or(FEATURES),
+        Task::COUNT,
+        config.network,
+        config.ddpg,
+        &mut rng,
+    );
+    let shape = |a: &crate::network::MultiTaskMlp| {
+        (
+            a.inputs(),
+            a.tasks(),
+            a.outputs(),
+            a.shared.len(),
+            a.shared.first().map(|l| l.weights.len()),
+        )
+    };
+    if shape(&actor) != shape(&agent.actor) {
+        return Err(TrainError::ActorShape {
+            path: path.display().to_string(),
+            reason: format!(
+                "{} inputs, {} tasks, {} outputs, {} shared layers; the config's actor has {}, {}, {}, {} (encoder_version and [network] must match the actor)",
+                actor.inputs(),
+                actor.tasks(),
+                actor.outputs(),
+                actor.shared.len(),
+                agent.actor.inputs(),
+                agent.actor.tasks(),
+                agent.actor.outputs(),
+                agent.actor.shared.len(),
+            ),
+        });
+    }
+    agent.target_actor = actor.clone();
+    agent.actor = actor;
+    Ok(Checkpoint {
+        agent,
+        progress: Progress::default(),
+        config: config.clone(),
+    })
 }
 
 /// Runs the evolution stage (`config.evolution`) on `source`'s actor, each task with

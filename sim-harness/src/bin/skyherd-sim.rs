@@ -134,9 +134,10 @@ struct EvalArgs {
     /// episodes that breached, with or without it.
     #[arg(long)]
     keep_apart: bool,
-    /// Fly the herders through a multicopter model (`skyherd_sim::dynamics`): `px4` (PX4's
-    /// default limits) or `indoor` (scaled to the room's slow drones) [default: they fly their
-    /// commands at once, the paper's protocol].
+    /// Fly the herders through a multicopter model (`skyherd_sim::dynamics`): `px4` (PX4 in
+    /// Offboard), `px4-auto` (PX4's jerk-limited mission trajectory on every command) or
+    /// `indoor` (PX4 in Offboard with the room's speed caps) [default: they fly their commands
+    /// at once, the paper's protocol].
     #[arg(long, value_enum)]
     dynamics: Option<DynamicsArg>,
     /// The wind with --dynamics: `calm`, `arena` (3 m/s, 1 m/s gusts) or `room` (draughts).
@@ -147,6 +148,7 @@ struct EvalArgs {
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]
 enum DynamicsArg {
     Px4,
+    Px4Auto,
     Indoor,
 }
 
@@ -201,13 +203,19 @@ struct ScenarioArgs {
 /// The policies the command line knows: a baseline by name, or `model:PATH`, a quantized model file
 /// run through the onboard actor as it flies.
 fn policy_factory(name: &str) -> Result<Arc<dyn PolicyFactory>> {
-    policy_factory_apart(name, false)
+    policy_factory_apart(name, false, (0.0, f32::INFINITY))
 }
 
 /// The same; `keep_apart`: model files fly with the daemon's separation rule too.
-fn policy_factory_apart(name: &str, keep_apart: bool) -> Result<Arc<dyn PolicyFactory>> {
+/// `response`: how long the herders take to fly a new velocity (s) and how hard they can change
+/// it (m/s²), with a motion model, which the separation rule counts.
+fn policy_factory_apart(
+    name: &str,
+    keep_apart: bool,
+    response: (f32, f32),
+) -> Result<Arc<dyn PolicyFactory>> {
     if let Some(path) = name.strip_prefix("model:") {
-        let model = ModelPolicy::from_file(path.as_ref())?;
+        let model = ModelPolicy::from_file(path.as_ref())?.responding_in(response.0, response.1);
         return Ok(Arc::new(if keep_apart {
             model.keeping_apart()
         } else {
@@ -281,6 +289,7 @@ fn eval_command(args: EvalArgs) -> Result<()> {
         Some(d) => Some(skyherd_sim::scenario::HerderDynamics {
             limits: match d {
                 DynamicsArg::Px4 => skyherd_sim::dynamics::DynamicsLimits::px4(),
+                DynamicsArg::Px4Auto => skyherd_sim::dynamics::DynamicsLimits::px4_auto(),
                 DynamicsArg::Indoor => skyherd_sim::dynamics::DynamicsLimits::indoor(),
             },
             wind: match wind {
@@ -297,7 +306,17 @@ fn eval_command(args: EvalArgs) -> Result<()> {
             .collect::<Result<_>>()?,
         methods: methods
             .iter()
-            .map(|m| policy_factory_apart(m, keep_apart))
+            .map(|m| {
+                // A lagging herder turns late; braking along one axis while turning along the
+                // other gets 1/sqrt(2) of its horizontal limit.
+                let response = dynamics.map_or((0.0, f32::INFINITY), |d| {
+                    (
+                        d.limits.response_lag_s() as f32,
+                        (d.limits.max_accel_horizontal * std::f64::consts::FRAC_1_SQRT_2) as f32,
+                    )
+                });
+                policy_factory_apart(m, keep_apart, response)
+            })
             .collect::<Result<_>>()?,
         herders,
         targets,

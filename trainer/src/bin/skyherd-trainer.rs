@@ -190,8 +190,12 @@ struct EvolveArgs {
     #[arg(long)]
     config: PathBuf,
     /// The checkpoint to start from [default: `<output_dir>/best.safetensors`].
-    #[arg(long)]
+    #[arg(long, conflicts_with = "actor")]
     checkpoint: Option<PathBuf>,
+    /// Start from an actor file instead (`trainer/shipped/*.actor.safetensors`, as `export
+    /// --actor-out` writes them): a checkpoint whose critic is fresh, which the stage never reads.
+    #[arg(long)]
+    actor: Option<PathBuf>,
 }
 
 #[derive(clap::Args, Debug)]
@@ -440,11 +444,17 @@ fn run_evolve(args: EvolveArgs) -> Result<()> {
     let EvolveArgs {
         config,
         checkpoint: source,
+        actor,
     } = args;
     let config = TrainConfig::load(&config)?;
-    let path = source.unwrap_or_else(|| config.output_dir.join("best.safetensors"));
-    let mut c =
-        checkpoint::load(&path).with_context(|| format!("evolving from {}", path.display()))?;
+    let mut c = match actor {
+        Some(path) => skyherd_trainer::train::checkpoint_of_actor(&config, &path)
+            .with_context(|| format!("evolving from {}", path.display()))?,
+        None => {
+            let path = source.unwrap_or_else(|| config.output_dir.join("best.safetensors"));
+            checkpoint::load(&path).with_context(|| format!("evolving from {}", path.display()))?
+        }
+    };
     // The stage's clock starts where the run's log ends, as in `train`.
     if let Ok(rows) = read_log(&config.output_dir.join("log.csv")) {
         let end = rows.iter().map(|r| r.wall_s).fold(0.0, f64::max);

@@ -224,6 +224,11 @@ fn run(args: RunArgs) -> Result<()> {
                     deceleration: a,
                     lag_s: lag,
                 });
+                // A vehicle that brakes late also turns late: the separation rule counts it.
+                if let Some(separation) = &mut config.separation {
+                    separation.response_lag_s = lag;
+                    separation.max_deceleration = a;
+                }
             }
             _ => bail!("--braking must be a deceleration > 0 m/s^2 and a lag >= 0 s, got {spec:?}"),
         }

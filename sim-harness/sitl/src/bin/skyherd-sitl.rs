@@ -116,8 +116,9 @@ struct MissionArgs {
     #[arg(long)]
     cut_uplink: Option<String>,
     /// How the vehicles follow their setpoints: `off` (at once, as every earlier number was
-    /// measured), `px4` (PX4's default acceleration, jerk and speed limits) or `room` (the
-    /// same shape scaled to the indoor room's slow vehicles); see skyherd_sim::dynamics.
+    /// measured), `px4` (PX4 in Offboard: its velocity loop's lag, tilt and speed limits),
+    /// `px4-auto` (PX4's jerk-limited mission trajectory on every setpoint) or `room` (PX4 in
+    /// Offboard with the room's speed caps); see skyherd_sim::dynamics.
     #[arg(long, value_enum, default_value_t = DynamicsArg::Off)]
     dynamics: DynamicsArg,
     /// The daemons keep apart by the breach distance (0.5 m in a room, 3 m in the arena) with
@@ -174,6 +175,7 @@ const MISSION_FAILED: u8 = 2;
 enum DynamicsArg {
     Off,
     Px4,
+    Px4Auto,
     Room,
 }
 
@@ -459,6 +461,7 @@ impl MissionArgs {
         config.dynamics = match self.dynamics {
             DynamicsArg::Off => None,
             DynamicsArg::Px4 => Some(DynamicsLimits::px4()),
+            DynamicsArg::Px4Auto => Some(DynamicsLimits::px4_auto()),
             DynamicsArg::Room => Some(DynamicsLimits::indoor()),
         };
         config.wind = match self.wind {
