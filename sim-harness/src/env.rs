@@ -111,8 +111,9 @@ pub struct Env {
     previous_herders: Vec<[f64; 3]>,
     noisy_actions: Vec<[f64; 3]>,
     info: EpisodeInfo,
-    /// With `scenario.dynamics`: each herder's multicopter and wind, and the wind's stream.
-    drones: Vec<(Multicopter, Wind)>,
+    /// With `scenario.dynamics`: each herder's multicopter, wind and last command (m/s), and
+    /// the wind's stream.
+    drones: Vec<(Multicopter, Wind, [f64; 3])>,
     wind_rng: ChaCha8Rng,
 }
 
@@ -234,7 +235,8 @@ impl Env {
         if let Some(d) = self.scenario.dynamics {
             for h in &self.world.herders {
                 let wind = Wind::new(&d.wind, &mut self.wind_rng);
-                self.drones.push((Multicopter::hovering_at(*h), wind));
+                self.drones
+                    .push((Multicopter::hovering_at(*h), wind, [0.0; 3]));
             }
         }
     }
@@ -248,7 +250,7 @@ impl Env {
         let dt = self.world.dt;
         let steps = (dt / MOTION_STEP_S).ceil().max(1.0) as usize;
         let h = dt / steps as f64;
-        for ((drone, wind), (action, herder)) in self
+        for ((drone, wind, previous), (action, herder)) in self
             .drones
             .iter_mut()
             .zip(self.noisy_actions.iter_mut().zip(&self.world.herders))
@@ -256,10 +258,17 @@ impl Env {
             // The world is the truth (it caps speeds and the ceiling): start from it.
             drone.position = *herder;
             let command = *action;
-            for _ in 0..steps {
+            for k in 0..steps {
                 let air = wind.step(&d.wind, h, &mut self.wind_rng);
-                drone.step(command, air, &d.limits, h);
+                // The new command arrives `command_delay_s` into the step.
+                let flying = if (k as f64) * h < d.command_delay_s - 1e-9 {
+                    *previous
+                } else {
+                    command
+                };
+                drone.step(flying, air, &d.limits, h);
             }
+            *previous = command;
             *action = std::array::from_fn(|k| (drone.position[k] - herder[k]) / dt);
         }
     }
@@ -293,7 +302,7 @@ impl Env {
         );
         self.fly_drones();
         advance(&mut self.world, &self.noisy_actions, &mut self.scratch)?;
-        for ((drone, _), herder) in self.drones.iter_mut().zip(&self.world.herders) {
+        for ((drone, _, _), herder) in self.drones.iter_mut().zip(&self.world.herders) {
             drone.position = *herder;
         }
 

@@ -79,6 +79,15 @@ pub struct HerderDynamics {
     pub limits: crate::dynamics::DynamicsLimits,
     /// The wind.
     pub wind: crate::dynamics::WindConfig,
+    /// How long a command takes to reach the autopilot, s (0 to one step `dt`): for that long
+    /// into each step the vehicle still flies the previous command. Through the MAVLink loop
+    /// a command rides on a snapshot one sensor tick old (0.1 s); the presets leave it at 0.
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub command_delay_s: f64,
+}
+
+fn is_zero(x: &f64) -> bool {
+    *x == 0.0
 }
 
 impl HerderDynamics {
@@ -113,7 +122,11 @@ impl HerderDynamics {
             "room" => WindConfig::room(),
             _ => return None,
         };
-        Some(HerderDynamics { limits, wind })
+        Some(HerderDynamics {
+            limits,
+            wind,
+            command_delay_s: 0.0,
+        })
     }
 }
 
@@ -363,6 +376,15 @@ impl Scenario {
             }
             if let Err(reason) = d.wind.validate() {
                 return bad("dynamics.wind", reason.into());
+            }
+            if !(d.command_delay_s.is_finite()
+                && d.command_delay_s >= 0.0
+                && d.command_delay_s <= self.dt)
+            {
+                return bad(
+                    "dynamics.command_delay_s",
+                    format!("must be 0 to one step ({} s)", self.dt),
+                );
             }
         }
         // Finite is not enough: 1e308 passes it and overflows a step (see

@@ -46,6 +46,7 @@ fn with_px4_dynamics_a_herder_lags_then_catches_up() {
     let mut s = scenario(Some(HerderDynamics {
         limits: DynamicsLimits::px4(),
         wind: WindConfig::CALM,
+        command_delay_s: 0.0,
     }));
     s.noise.actuation_std = 0.0;
     let start = {
@@ -75,10 +76,48 @@ fn with_px4_dynamics_a_herder_lags_then_catches_up() {
 }
 
 #[test]
+fn a_delayed_command_is_flown_from_its_arrival() {
+    let mut s = scenario(Some(HerderDynamics {
+        limits: DynamicsLimits::px4(),
+        wind: WindConfig::CALM,
+        command_delay_s: 1.0,
+    }));
+    s.noise.actuation_std = 0.0;
+    let start = {
+        let mut env = Env::new(s.clone()).unwrap();
+        env.reset(3);
+        env.world().herders.clone()
+    };
+    // A whole step late (the paper's 1 s step): the first step still hovers, the second flies
+    // what the first asked for, as the undelayed drone flew it in its first step.
+    let late = fly(&s, 3, [5.0, 0.0, 0.0], 2);
+    assert!(
+        (late[0][0][0] - start[0][0]).abs() < 1e-9,
+        "{:?}",
+        late[0][0]
+    );
+    let mut prompt = s.clone();
+    if let Some(d) = prompt.dynamics.as_mut() {
+        d.command_delay_s = 0.0;
+    }
+    let on_time = fly(&prompt, 3, [5.0, 0.0, 0.0], 1);
+    let a = late[1][0][0] - late[0][0][0];
+    let b = on_time[0][0][0] - start[0][0];
+    assert!((a - b).abs() < 1e-9, "{a} vs {b}");
+    // More than a step is refused, by name.
+    if let Some(d) = s.dynamics.as_mut() {
+        d.command_delay_s = 1.5;
+    }
+    let err = s.validate().unwrap_err().to_string();
+    assert!(err.contains("dynamics.command_delay_s"), "{err}");
+}
+
+#[test]
 fn the_wind_pushes_reproducibly() {
     let s = scenario(Some(HerderDynamics {
         limits: DynamicsLimits::px4(),
         wind: WindConfig::arena(),
+        command_delay_s: 0.0,
     }));
     let a = fly(&s, 11, [0.0; 3], 20);
     let b = fly(&s, 11, [0.0; 3], 20);
@@ -104,6 +143,7 @@ fn dynamics_round_trip_through_toml_and_bad_values_are_refused() {
     let s = scenario(Some(HerderDynamics {
         limits: DynamicsLimits::indoor(),
         wind: WindConfig::room(),
+        command_delay_s: 0.0,
     }));
     let text = s.to_toml().expect("serializes");
     assert!(text.contains("[dynamics.limits]"), "{text}");

@@ -80,6 +80,10 @@ pub struct EvolutionScenario {
     /// The wind with `dynamics`: `calm` (the default), `arena` or `room`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub wind: Option<String>,
+    /// With `dynamics`: commands reach the vehicle this long into each step, s (the MAVLink
+    /// loop's sensor tick, 0.1 s; `skyherd_sim::HerderDynamics::command_delay_s`).
+    #[serde(default)]
+    pub command_delay_s: f64,
     /// Episodes per perturbed actor per generation.
     pub episodes: usize,
 }
@@ -95,12 +99,22 @@ impl EvolutionScenario {
             indoor: false,
             dynamics: None,
             wind: None,
+            command_delay_s: 0.0,
             episodes,
         }
     }
 
     /// The motion model and wind it names, if any; the error says which name is unknown.
     pub fn herder_dynamics(&self) -> Result<Option<skyherd_sim::HerderDynamics>, String> {
+        if !(self.command_delay_s.is_finite() && self.command_delay_s >= 0.0) {
+            return Err(format!(
+                "`command_delay_s` must be 0 s or more, got {}",
+                self.command_delay_s
+            ));
+        }
+        if self.command_delay_s != 0.0 && self.dynamics.is_none() {
+            return Err("`command_delay_s` needs `dynamics`".into());
+        }
         match (&self.dynamics, &self.wind) {
             (None, None) => Ok(None),
             (None, Some(_)) => {
@@ -108,7 +122,15 @@ impl EvolutionScenario {
             }
             (Some(d), w) => {
                 let w = w.as_deref().unwrap_or("calm");
-                skyherd_sim::HerderDynamics::named(d, w).map(Some).ok_or_else(|| {
+                let delay = self.command_delay_s;
+                skyherd_sim::HerderDynamics::named(d, w)
+                    .map(|named| {
+                        Some(skyherd_sim::HerderDynamics {
+                            command_delay_s: delay,
+                            ..named
+                        })
+                    })
+                    .ok_or_else(|| {
                     format!(
                         "dynamics `{d}` in wind `{w}`: the motion models are {:?} and the winds {:?}",
                         skyherd_sim::HerderDynamics::LIMITS,
@@ -969,6 +991,8 @@ mod tests {
             ("dynamics = \"px4\", wind = \"gale\"", "gale"),
             ("wind = \"room\"", "`wind` needs `dynamics`"),
             ("room = true, indoor = true", "exclude each other"),
+            ("command_delay_s = 0.1", "needs `dynamics`"),
+            ("dynamics = \"px4\", command_delay_s = -1.0", "0 s or more"),
         ] {
             let text = format!(
                 "[evolution]\nscenarios = [{{ task = \"driving\", targets = 4, herders = 2, episodes = 2, {bad} }}]"

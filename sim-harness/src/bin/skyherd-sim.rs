@@ -143,6 +143,10 @@ struct EvalArgs {
     /// The wind with --dynamics: `calm`, `arena` (3 m/s, 1 m/s gusts) or `room` (draughts).
     #[arg(long, value_enum, default_value_t = WindArg::Calm)]
     wind: WindArg,
+    /// With --dynamics: commands reach the vehicle this long into each step, s (0 to one step;
+    /// the MAVLink loop's is one 0.1 s sensor tick).
+    #[arg(long, default_value_t = 0.0)]
+    command_delay_s: f64,
 }
 
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]
@@ -280,7 +284,11 @@ fn eval_command(args: EvalArgs) -> Result<()> {
         keep_apart,
         dynamics,
         wind,
+        command_delay_s,
     } = args;
+    if command_delay_s != 0.0 && dynamics.is_none() {
+        bail!("--command-delay-s needs --dynamics: without a motion model a command acts at once");
+    }
     let dynamics = match dynamics {
         None if wind != WindArg::Calm => {
             bail!("--wind needs --dynamics: without a motion model nothing feels it")
@@ -297,6 +305,7 @@ fn eval_command(args: EvalArgs) -> Result<()> {
                 WindArg::Arena => skyherd_sim::dynamics::WindConfig::arena(),
                 WindArg::Room => skyherd_sim::dynamics::WindConfig::room(),
             },
+            command_delay_s,
         }),
     };
     let spec = SweepSpec {
