@@ -4,9 +4,12 @@
 # second evolution stage; about 18 min), then the export (quantization-aware fine-tuning and
 # int8/int16 quantization; about 20 s); then mtddpg-v3 from mtddpg-v1's float actor, widened to
 # encoder v4's features: the Enclose rule distilled into its large flocks (about 4 min) and its
-# export. About 55 min in all. Seeded: the same commands give the same model files.
-#   ./scripts/train-model.sh            # -> models/mtddpg-v1.skym, models/mtddpg-v3.skym and
-#                                       #    their float actors in trainer/shipped/
+# export; then mtddpg-room, the indoor mission's model with the drones' dynamics on, from
+# mtddpg-v3's float actor: two evolution stages on the room (about 7 and 11 min) and its export.
+# About 75 min in all. Seeded: the same commands give the same model files.
+#   ./scripts/train-model.sh            # -> models/mtddpg-v1.skym, models/mtddpg-v3.skym,
+#                                       #    models/mtddpg-room.skym and their float actors in
+#                                       #    trainer/shipped/
 set -euo pipefail
 cd "$(dirname "$0")/.."
 export CARGO_TARGET_DIR="${CARGO_TARGET_DIR:-target-trainer}"
@@ -22,3 +25,9 @@ trainer="$CARGO_TARGET_DIR/release/skyherd-trainer"
   | tee trainer/shipped/mtddpg-v3-distill.log.txt
 "$trainer" export --checkpoint runs/mtddpg-v3/distilled.safetensors \
   --out models/mtddpg-v3.skym --actor-out trainer/shipped/mtddpg-v3.actor.safetensors
+"$trainer" evolve --config trainer/configs/mtddpg-room.toml \
+  --actor runs/mtddpg-v3/distilled.safetensors
+"$trainer" evolve --config trainer/configs/mtddpg-room-2.toml \
+  --checkpoint runs/mtddpg-room/evolved.safetensors
+"$trainer" export --checkpoint runs/mtddpg-room-2/evolved.safetensors \
+  --out models/mtddpg-room.skym --actor-out trainer/shipped/mtddpg-room.actor.safetensors

@@ -71,8 +71,9 @@ pub struct SeparationConfig {
     pub passes: u8,
     /// How long the vehicle takes to turn a new velocity into flight, s (0: at once). Over it
     /// both drones keep closing at today's speed, so the gap the rule shares out shrinks by
-    /// `closing * response_lag_s` first: with an autopilot's lag `tau`, `tau` plus the time
-    /// its jerk limit takes to reach full acceleration (`skyherd-onboard --braking`'s LAG).
+    /// `closing * (response_lag_s + age)` first (`age`: how old the peer's position is): with
+    /// an autopilot's lag `tau`, `tau` plus the time its jerk limit takes to reach full
+    /// acceleration (`skyherd-onboard --braking`'s LAG).
     pub response_lag_s: f32,
     /// How hard the vehicle can change its velocity, m/s² (infinity: at once). A pair closing
     /// at `c` needs `c² / (2 a)` more room to stop closing when each takes half of it
@@ -224,12 +225,14 @@ fn half_space(
     } else {
         dot(sub(own_velocity, peer.velocity), n)
     };
-    // What the lag lets the pair close before a new velocity takes hold.
+    // What the pair closes before a new velocity takes hold: over the vehicle's lag, and over
+    // the age of a fresh peer's position (it has been closing since; a stale one's growing
+    // radius already covers its age).
     let lag = if config.response_lag_s.is_finite() {
         config.response_lag_s.max(0.0)
     } else {
         0.0
-    };
+    } + if stale { 0.0 } else { peer.age_s.max(0.0) };
     let closing_now = closing.max(0.0);
     // Both drones brake on a fresh peer's half-space; against a stale one, only this one.
     let braking = if stale { 1.0 } else { 2.0 } * config.max_deceleration;

@@ -60,6 +60,7 @@ fn fly_real_mission(bundle: &ArduCopterBundle, attempt: usize) -> Value {
         .current_dir(repo())
         .env("SKYHERD_ARDUCOPTER", &bundle.binary)
         .args(["--model", "models/mtddpg-v3.skym", "--scenario", "indoor"])
+        .args(["--dynamics", "off", "--no-keep-apart"])
         .args(["--arducopter", "all", "--arducopter-speedup", "5"])
         .args(["--time-limit", "240", "--out"])
         .arg(&out)

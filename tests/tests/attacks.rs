@@ -286,6 +286,7 @@ fn indoor(label: &str, extra: &[&str], flood: bool) -> Mission {
     let child = Command::new(binary("skyherd-sitl"))
         .current_dir(repo())
         .args(["--model", "models/mtddpg-v3.skym", "--scenario", "indoor"])
+        .args(["--dynamics", "off", "--no-keep-apart"])
         .args(["--seed", "0"])
         .args(extra)
         .arg("--out")

@@ -155,6 +155,19 @@ pub(crate) fn ending_text(ending: Ending) -> &'static str {
     }
 }
 
+/// How a mission was flown: what `result.json` records beside the outcome.
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+pub struct FlightSettings {
+    /// The model file the drones flew.
+    pub model: String,
+    /// The vehicles' motion model (`off`, `room`, `px4`, `px4-auto`).
+    pub dynamics: String,
+    /// The wind (`calm`, `room`, `arena`).
+    pub wind: String,
+    /// Whether the daemons ran the separation rule.
+    pub keep_apart: bool,
+}
+
 /// One mission's outcome: what `result.json` holds.
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct MissionResult {
@@ -209,6 +222,8 @@ pub struct MissionResult {
     pub touchdown_s: Vec<Option<f64>>,
     /// What was outside the arena when the mission ended there (`herder N`, `target N`).
     pub left_area: Vec<String>,
+    /// How it was flown.
+    pub flight: FlightSettings,
 }
 
 impl MissionResult {
@@ -408,6 +423,7 @@ mod tests {
             landing_start_s: vec![None, None],
             touchdown_s: vec![None, None],
             left_area: Vec::new(),
+            flight: FlightSettings::default(),
         };
         let table = result.table();
         assert!(table.contains("outcome       success"), "{table}");

@@ -24,7 +24,7 @@ use skyherd_sim::dynamics::{DynamicsLimits, WindConfig};
 use skyherd_sim::scenario::HerderCount;
 use skyherd_sim::{Scenario, World};
 use skyherd_sitl::FaultConfig;
-use skyherd_sitl::console::{MissionResult, MissionWatch, Stop};
+use skyherd_sitl::console::{FlightSettings, MissionResult, MissionWatch, Stop};
 use skyherd_sitl::launch::{self, Guard, KeyFolder, LaunchPlan};
 use skyherd_sitl::mission::{Ending, SitlConfig, SitlError, SitlWorld};
 
@@ -33,7 +33,8 @@ use skyherd_sitl::mission::{Ending, SitlConfig, SitlError, SitlWorld};
     name = "skyherd-sitl",
     version,
     about = "Fly one SITL herding mission: simulator + ground station + one onboard daemon per drone",
-    args_conflicts_with_subcommands = true
+    args_conflicts_with_subcommands = true,
+    args_override_self = true
 )]
 struct Cli {
     #[command(subcommand)]
@@ -84,9 +85,10 @@ struct MissionArgs {
     /// Episode seed [default: the scenario's].
     #[arg(long)]
     seed: Option<u64>,
-    /// The trained model the drones fly.
-    #[arg(long, default_value = "models/mtddpg-v3.skym")]
-    model: PathBuf,
+    /// The trained model the drones fly [default: models/mtddpg-room.skym for a room whose
+    /// drones fly their dynamics, else models/mtddpg-v3.skym].
+    #[arg(long)]
+    model: Option<PathBuf>,
     /// Output folder.
     #[arg(long, default_value = "out/mission")]
     out: PathBuf,
@@ -115,20 +117,25 @@ struct MissionArgs {
     /// Cut the ground's uplink to every drone for DURATION seconds from START (START,DURATION).
     #[arg(long)]
     cut_uplink: Option<String>,
-    /// How the vehicles follow their setpoints: `off` (at once, as every earlier number was
-    /// measured), `px4` (PX4 in Offboard: its velocity loop's lag, tilt and speed limits),
-    /// `px4-auto` (PX4's jerk-limited mission trajectory on every setpoint) or `room` (PX4 in
-    /// Offboard with the room's speed caps); see skyherd_sim::dynamics.
-    #[arg(long, value_enum, default_value_t = DynamicsArg::Off)]
+    /// How the vehicles follow their setpoints: `auto` (the default: `room` in a room, `px4`
+    /// in the arena), `off` (at once, the paper's protocol and every number measured before
+    /// the dynamics model), `px4` (PX4 in Offboard: its velocity loop's lag, tilt and speed
+    /// limits), `px4-auto` (PX4's jerk-limited mission trajectory on every setpoint) or `room`
+    /// (PX4 in Offboard with the room's speed caps); see skyherd_sim::dynamics.
+    #[arg(long, value_enum, default_value_t = DynamicsArg::Auto)]
     dynamics: DynamicsArg,
-    /// The daemons keep apart by the breach distance (0.5 m in a room, 3 m in the arena) with
-    /// the reciprocal rule of skyherd_onboard::separation (off by default, so every earlier
-    /// number stands).
-    #[arg(long)]
+    /// The daemons keep apart by 10 % beyond the breach distance (0.5 m in a room, 3 m in the
+    /// arena) with the reciprocal rule of skyherd_onboard::separation. On by default; this
+    /// flag says so explicitly.
+    #[arg(long, overrides_with = "no_keep_apart")]
     keep_apart: bool,
-    /// The wind (with --dynamics only): `calm`, `arena` (3 m/s with 1 m/s gusts) or `room`
-    /// (0.05 m/s draughts).
-    #[arg(long, value_enum, default_value_t = WindArg::Calm)]
+    /// Fly without the separation rule (the drones may come within centimetres).
+    #[arg(long)]
+    no_keep_apart: bool,
+    /// The wind: `auto` (the default: with dynamics the room's draughts in a room and the
+    /// arena's wind in the arena, calm without), `calm`, `arena` (3 m/s with 1 m/s gusts) or
+    /// `room` (0.05 m/s draughts); anything but calm needs a motion model.
+    #[arg(long, value_enum, default_value_t = WindArg::Auto)]
     wind: WindArg,
     /// Give up this many simulated seconds after the drones start flying. A mission's abort
     /// limit is mission control's choice, not the scenario's training-episode step limit.
@@ -173,6 +180,7 @@ const MISSION_FAILED: u8 = 2;
 
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]
 enum DynamicsArg {
+    Auto,
     Off,
     Px4,
     Px4Auto,
@@ -181,6 +189,7 @@ enum DynamicsArg {
 
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]
 enum WindArg {
+    Auto,
     Calm,
     Arena,
     Room,
@@ -274,6 +283,24 @@ fn main() -> Result<std::process::ExitCode> {
         world.goal.center[1],
         world.goal.radius
     ));
+    let (dynamics, wind) = cli.flight_names(&scenario);
+    let flight = FlightSettings {
+        model: cli.model(&scenario).display().to_string(),
+        dynamics: dynamics.to_owned(),
+        wind: wind.to_owned(),
+        keep_apart: cli.keeps_apart(),
+    };
+    say(format!(
+        "flight: {} dynamics, {} wind, {}, model {}",
+        flight.dynamics,
+        flight.wind,
+        if flight.keep_apart {
+            "drones kept apart"
+        } else {
+            "no separation rule"
+        },
+        flight.model
+    ));
 
     let plan = LaunchPlan {
         ground: launch::sibling("skyherd-ground")?,
@@ -282,7 +309,7 @@ fn main() -> Result<std::process::ExitCode> {
             None => launch::sibling("skyherd-onboard")?,
         },
         daemon_wrapper: cli.daemon_wrapper.clone(),
-        model: cli.model.clone(),
+        model: cli.model(&scenario),
         keys: keys.path().to_path_buf(),
         out: cli.out.clone(),
         cut_uplink: cli.cut_uplink.clone(),
@@ -291,7 +318,7 @@ fn main() -> Result<std::process::ExitCode> {
         // The rule keeps 10 % beyond the breach distance: it steers on the other drones'
         // positions of the last snapshot, a tick old.
         keep_apart_m: cli
-            .keep_apart
+            .keeps_apart()
             .then_some(sitl.config().separation_m * KEEP_APART_MARGIN),
         ground_idle_timeout_s: if cli.speed > 0.0 {
             (3.0 / cli.speed).max(1.0)
@@ -359,7 +386,8 @@ fn main() -> Result<std::process::ExitCode> {
     // The ground ends on its own once it has seen the mission through; give it a moment.
     let ground_summary = read_ground_summary(&mut ground, Duration::from_secs(3));
     drop(daemons);
-    let result = mission_result(&sitl, &scenario, seed, &world, wall_s, ground_summary);
+    let mut result = mission_result(&sitl, &scenario, seed, &world, wall_s, ground_summary);
+    result.flight = flight.clone();
     let result_path = cli.out.join("result.json");
     std::fs::write(&result_path, serde_json::to_string_pretty(&result)?)?;
     let title = format!(
@@ -393,13 +421,75 @@ impl MissionArgs {
             scenario.targets = n;
         }
         scenario.validate()?;
-        if !self.model.exists() {
+        let model = self.model(&scenario);
+        if !model.exists() {
             bail!(
                 "model file {} not found (train one with skyherd-trainer, or pass --model)",
-                self.model.display()
+                model.display()
             );
         }
         Ok((scenario.clone(), self.seed.unwrap_or(scenario.seed)))
+    }
+
+    /// Whether `scenario` is a room (its breach distance is the room's 0.5 m, not the arena's).
+    fn is_room(scenario: &Scenario) -> bool {
+        scenario.area.breach_distance_m() <= 1.0
+    }
+
+    /// The motion model `--dynamics` names for `scenario` (`auto`: the room's or PX4's).
+    fn dynamics(&self, scenario: &Scenario) -> Option<DynamicsLimits> {
+        match self.dynamics {
+            DynamicsArg::Auto if Self::is_room(scenario) => Some(DynamicsLimits::indoor()),
+            DynamicsArg::Auto | DynamicsArg::Px4 => Some(DynamicsLimits::px4()),
+            DynamicsArg::Off => None,
+            DynamicsArg::Px4Auto => Some(DynamicsLimits::px4_auto()),
+            DynamicsArg::Room => Some(DynamicsLimits::indoor()),
+        }
+    }
+
+    /// The names of the flight model and wind in force, for the console and result.json.
+    fn flight_names(&self, scenario: &Scenario) -> (&'static str, &'static str) {
+        let dynamics = match (self.dynamics, Self::is_room(scenario)) {
+            (DynamicsArg::Auto, true) | (DynamicsArg::Room, _) => "room",
+            (DynamicsArg::Auto, false) | (DynamicsArg::Px4, _) => "px4",
+            (DynamicsArg::Px4Auto, _) => "px4-auto",
+            (DynamicsArg::Off, _) => "off",
+        };
+        let wind = match self.wind(scenario) {
+            w if w == WindConfig::CALM => "calm",
+            w if w == WindConfig::room() => "room",
+            w if w == WindConfig::arena() => "arena",
+            _ => "custom",
+        };
+        (dynamics, wind)
+    }
+
+    /// The wind `--wind` names for `scenario` (`auto`: calm without dynamics, else the room's
+    /// or the arena's).
+    fn wind(&self, scenario: &Scenario) -> WindConfig {
+        match self.wind {
+            WindArg::Auto if self.dynamics(scenario).is_none() => WindConfig::CALM,
+            WindArg::Auto if Self::is_room(scenario) => WindConfig::room(),
+            WindArg::Auto | WindArg::Arena => WindConfig::arena(),
+            WindArg::Calm => WindConfig::CALM,
+            WindArg::Room => WindConfig::room(),
+        }
+    }
+
+    /// Whether the daemons run the separation rule (on unless `--no-keep-apart`).
+    fn keeps_apart(&self) -> bool {
+        !self.no_keep_apart || self.keep_apart
+    }
+
+    /// The model file: `--model`, else the mission's model for `scenario` and its dynamics.
+    fn model(&self, scenario: &Scenario) -> PathBuf {
+        match &self.model {
+            Some(path) => path.clone(),
+            None if Self::is_room(scenario) && self.dynamics(scenario).is_some() => {
+                PathBuf::from("models/mtddpg-room.skym")
+            }
+            None => PathBuf::from("models/mtddpg-v3.skym"),
+        }
     }
 
     fn sitl_config(
@@ -458,18 +548,9 @@ impl MissionArgs {
             AutopilotArg::Px4 => skyherd_link::Flavour::Px4,
             AutopilotArg::Ardupilot => skyherd_link::Flavour::ArduPilot,
         };
-        config.dynamics = match self.dynamics {
-            DynamicsArg::Off => None,
-            DynamicsArg::Px4 => Some(DynamicsLimits::px4()),
-            DynamicsArg::Px4Auto => Some(DynamicsLimits::px4_auto()),
-            DynamicsArg::Room => Some(DynamicsLimits::indoor()),
-        };
-        config.wind = match self.wind {
-            WindArg::Calm => WindConfig::CALM,
-            WindArg::Arena => WindConfig::arena(),
-            WindArg::Room => WindConfig::room(),
-        };
-        if config.dynamics.is_none() && !matches!(self.wind, WindArg::Calm) {
+        config.dynamics = self.dynamics(scenario);
+        config.wind = self.wind(scenario);
+        if config.dynamics.is_none() && config.wind != WindConfig::CALM {
             bail!("--wind needs --dynamics px4 or room: without a motion model nothing feels it");
         }
         if let Some(spec) = &self.cut_uplink {
@@ -700,6 +781,7 @@ fn mission_result(
         landing_start_s: sitl.landing_starts(),
         touchdown_s,
         left_area: sitl.left_area().to_vec(),
+        flight: FlightSettings::default(),
     }
 }
 
