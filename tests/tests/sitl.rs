@@ -164,8 +164,8 @@ fn kept_apart_the_indoor_drones_never_breach_half_a_metre() {
 
 /// The mission's default, `skyherd-sitl` with no flight flags: the room's drones fly PX4's
 /// Offboard response (a 0.55 s lag) in the room's draughts, keep 0.55 m apart, and fly
-/// mtddpg-room, the model tuned for them. Seed 0 succeeds in 46.2 s (against 29.1 s for
-/// mtddpg-v3 on instant vehicles), the drones never nearer than 0.74 m; result.json says how it
+/// mtddpg-room, the model tuned for them. Seed 0 succeeds in 42.0 s (against 29.1 s for
+/// mtddpg-v3 on instant vehicles), the drones never nearer than 0.67 m; result.json says how it
 /// was flown.
 #[test]
 fn the_default_mission_flies_the_room_with_dynamics_and_keeps_the_drones_apart() {
