@@ -367,6 +367,10 @@ pub struct SitlWorld {
     time_s: f64,
     next_scan: f64,
     flight_start: Option<f64>,
+    /// Which drones have reached their takeoff altitude under external control since the
+    /// mission began: a takeoff is an event, so a gust that drops a drone below the altitude
+    /// after it got there does not hold the episode's start back.
+    reached_altitude: Vec<bool>,
     ending: Option<(Ending, f64)>,
     path_length: f64,
     actions: Vec<[f64; 3]>,
@@ -487,6 +491,7 @@ impl SitlWorld {
             time_s: 0.0,
             next_scan: 0.0,
             flight_start: None,
+            reached_altitude: Vec::new(),
             ending: None,
             path_length: 0.0,
             actions: vec![[0.0; 3]; herders],
@@ -739,6 +744,9 @@ impl SitlWorld {
         // 1. Autopilots: receive and fly (they report after the world has moved, step 4).
         let (mut flying, mut armed) = (0, 0);
         let airborne = self.config.takeoff_altitude_m - AIRBORNE_TOLERANCE_M;
+        let drones = self.real.len().max(self.nodes.len());
+        self.reached_altitude.resize(drones, false);
+        let reached = &mut self.reached_altitude;
         for (i, slot) in self.real.iter().enumerate() {
             if let Some((copter, offset)) = slot {
                 let (ned, _) = copter.state_at(t + offset).unwrap_or(([0.0; 3], [0.0; 3]));
@@ -752,8 +760,9 @@ impl SitlWorld {
                 ];
                 self.real_targets[i] = target;
                 if copter.armed() && copter.guided() && -ned[2] >= airborne {
-                    flying += 1;
+                    reached[i] = true;
                 }
+                flying += usize::from(reached[i]);
                 armed += usize::from(copter.armed());
             }
         }
@@ -766,8 +775,9 @@ impl SitlWorld {
                     let v = ned_to_sim(node.receive_and_fly(t)?);
                     let ap = node.autopilot();
                     if ap.under_external_control() && -ap.position_ned()[2] >= airborne {
-                        flying += 1;
+                        reached[i] = true;
                     }
+                    flying += usize::from(reached[i]);
                     armed += usize::from(ap.armed());
                     v
                 }
