@@ -53,7 +53,6 @@ fn a_bad_fault_flag_is_refused() {
         ("--lose-drone", "0@nan"),
         ("--cut-uplink", "5"),
         ("--cut-uplink", "3,-5"),
-        ("--wind", "arena"),
         ("--land-after-s", "nan"),
         ("--land-after-s", "-1"),
         ("--land-after-s", "inf"),
@@ -75,5 +74,19 @@ fn a_bad_fault_flag_is_refused() {
             "{arg}: nothing is written"
         );
     }
+    // Wind with no motion model to feel it.
+    let (ok, err) = sitl(&[
+        "--scenario",
+        "indoor",
+        "--model",
+        model,
+        "--out",
+        out,
+        "--dynamics",
+        "off",
+        "--wind=arena",
+    ]);
+    assert!(!ok, "--wind=arena with --dynamics off accepted");
+    assert!(err.contains("--wind"), "{err}");
     let _ = std::fs::remove_dir_all(out);
 }
