@@ -7,7 +7,7 @@ use serde::{Deserialize, Serialize};
 use skyherd_model::Task;
 use skyherd_sim::env::run_episodes_parallel;
 use skyherd_sim::task::task_name;
-use skyherd_sim::{EnvError, EpisodeSummary, HerderCount, Policy, Scenario};
+use skyherd_sim::{EnvError, EpisodeSummary, Policy, Scenario};
 
 /// One evaluated scenario.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -25,11 +25,7 @@ impl EvalScenario {
     pub fn scenario(&self) -> Scenario {
         let mut s = Scenario::paper(self.task);
         s.targets = self.targets;
-        s.herders = if self.herders == 0 {
-            HerderCount::Adaptive
-        } else {
-            HerderCount::Fixed(self.herders)
-        };
+        s.herders = crate::rollout::herder_count(self.herders);
         s
     }
 

@@ -51,12 +51,12 @@ use rayon::prelude::*;
 use skyherd_model::Task;
 use skyherd_sim::env::run_episode;
 use skyherd_sim::world::World;
-use skyherd_sim::{Env, EnvError, HerderCount, Scenario};
+use skyherd_sim::{Env, EnvError, Scenario};
 
 use crate::config::{EvolutionConfig, EvolutionScenario, RewardConfig};
 use crate::network::MultiTaskMlp;
 use crate::policy::ActorPolicy;
-use crate::rollout::{Draw, training_scenario};
+use crate::rollout::{Draw, herder_count, training_scenario};
 
 /// Seeds of the training episodes start here (generation `g` uses `TRAIN_SEED_BASE + g * 1000`
 /// onwards); the check uses the config's own base, far from both and from the warm start's.
@@ -134,11 +134,7 @@ pub fn scenario_of(s: &EvolutionScenario, step_limit: u64) -> Scenario {
         let mut room = Scenario::indoor();
         room.task = s.task;
         room.targets = s.targets;
-        room.herders = if s.herders == 0 {
-            HerderCount::Adaptive
-        } else {
-            HerderCount::Fixed(s.herders)
-        };
+        room.herders = herder_count(s.herders);
         room.step_limit = step_limit;
         room.dynamics = dynamics;
         return room;

@@ -63,6 +63,15 @@ fn draw_room(config: &TrainConfig, rng: &mut ChaCha8Rng, task: Task, targets: us
         && rng.random_bool(config.training.room_layout_fraction.min(1.0))
 }
 
+/// A configured herder count as the simulator's: 0 is the adaptive count, anything else fixed.
+pub fn herder_count(herders: usize) -> HerderCount {
+    if herders == 0 {
+        HerderCount::Adaptive
+    } else {
+        HerderCount::Fixed(herders)
+    }
+}
+
 /// The paper scenario of `draw`, with the learner's step limit, noise on or off, and the
 /// simulator's leave correction at the learner's gamma when `reward.leave_correction`.
 pub fn training_scenario(
@@ -81,11 +90,7 @@ pub fn training_scenario(
         s.layout.min_start_goal_distance = room.layout.min_start_goal_distance * zoom;
     }
     s.targets = draw.targets;
-    s.herders = if draw.herders == 0 {
-        HerderCount::Adaptive
-    } else {
-        HerderCount::Fixed(draw.herders)
-    };
+    s.herders = herder_count(draw.herders);
     s.step_limit = step_limit;
     if !noise {
         s = s.without_noise();
