@@ -87,6 +87,12 @@ pub struct SitlConfig {
     pub dynamics: Option<DynamicsLimits>,
     /// The wind (with `dynamics` only).
     pub wind: WindConfig,
+    /// The autopilots' position-estimate error (with `dynamics` only): each axis of what they
+    /// report wanders from the truth as a Gauss-Markov process of this stationary standard
+    /// deviation (m) over [`ESTIMATE_TIME_S`]. Defaults: 0.03 m in a room (motion capture or
+    /// ultra-wideband); 0 in the arena, where a GNSS-like 0.5 m still breaks the loop (a
+    /// vertical error that size keeps drones from counting as airborne; `--estimate-noise-m`).
+    pub estimate_std_m: f64,
     /// Two drones closer than this (3-D, m) during flight is a separation breach: 0.5 m in a
     /// room-sized arena (50 m or less across), 3 m otherwise.
     pub separation_m: f64,
@@ -139,7 +145,11 @@ pub struct AutopilotLink {
 /// How long (wall time) a tick waits for a real ArduCopter's clock before the mission fails.
 const REAL_CLOCK_TIMEOUT: Duration = Duration::from_secs(10);
 
-/// The episode starts once every drone is this close (m) below the takeoff altitude.
+/// How long the autopilots' position-estimate error takes to wander, s (a GNSS receiver's and
+/// an EKF's errors change over seconds, not from one report to the next).
+pub const ESTIMATE_TIME_S: f64 = 5.0;
+
+/// The episode starts once every drone has come this close (m) below the takeoff altitude.
 pub const AIRBORNE_TOLERANCE_M: f64 = 0.15;
 
 impl SitlConfig {
@@ -170,6 +180,7 @@ impl SitlConfig {
             ground_acks_scans: true,
             dynamics: None,
             wind: WindConfig::CALM,
+            estimate_std_m: 0.0,
             separation_m: 0.0,
             land_after_s: 10.0,
             kill_ground_at: None,
@@ -183,6 +194,7 @@ impl SitlConfig {
 
     fn with_default_separation(mut self) -> Self {
         self.separation_m = self.scenario.area.breach_distance_m();
+        self.estimate_std_m = if self.separation_m <= 1.0 { 0.03 } else { 0.0 };
         self
     }
 }
@@ -458,6 +470,8 @@ impl SitlWorld {
                 limits,
                 wind: config.wind,
                 wind_seed: config.seed.wrapping_add(5000 + i as u64),
+                estimate_std_m: config.estimate_std_m,
+                estimate_time_s: ESTIMATE_TIME_S,
             });
             let options = NodeOptions {
                 signing: config.signing.clone(),

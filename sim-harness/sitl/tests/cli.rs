@@ -53,6 +53,8 @@ fn a_bad_fault_flag_is_refused() {
         ("--lose-drone", "0@nan"),
         ("--cut-uplink", "5"),
         ("--cut-uplink", "3,-5"),
+        ("--estimate-noise-m", "nan"),
+        ("--estimate-noise-m", "-1"),
         ("--land-after-s", "nan"),
         ("--land-after-s", "-1"),
         ("--land-after-s", "inf"),

@@ -55,7 +55,7 @@ use mavlink::dialects::common::{
     MavSeverity, MavState, MavSysStatusSensor, MavType, MavVtolState, PARAM_VALUE_DATA,
     SET_POSITION_TARGET_LOCAL_NED_DATA, STATUSTEXT_DATA, SYS_STATUS_DATA, TIMESYNC_DATA,
 };
-use rand::SeedableRng;
+use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use skyherd_link::Flavour;
 use skyherd_link::{DAEMON_COMPONENT_ID, FlightMode};
@@ -128,8 +128,13 @@ pub struct Motion {
     pub limits: DynamicsLimits,
     /// The wind it flies in.
     pub wind: WindConfig,
-    /// Seed of the wind's gusts (one stream per vehicle).
+    /// Seed of the wind's gusts (one stream per vehicle); the estimate error draws from a
+    /// stream of its own derived from it, so the gusts do not depend on it.
     pub wind_seed: u64,
+    /// Stationary standard deviation of the reported position's error per axis, m (0: exact).
+    pub estimate_std_m: f64,
+    /// The error's correlation time, s.
+    pub estimate_time_s: f64,
 }
 
 /// Sub-step of the motion model, s: the lockstep tick (0.1 s) is too coarse for a 0.3 s lag.
@@ -345,6 +350,8 @@ pub struct MockAutopilot {
     rejections: Rejections,
     /// The motion model's state, its wind and the wind's random stream (with `dynamics`).
     motion: Option<(Multicopter, Wind, ChaCha8Rng)>,
+    /// The position estimate's error now (m, NED) and its random stream (with `dynamics`).
+    estimate: Option<([f64; 3], ChaCha8Rng)>,
 }
 
 impl MockAutopilot {
@@ -360,6 +367,19 @@ impl MockAutopilot {
                 wind,
                 rng,
             )
+        });
+        let estimate = config.dynamics.map(|m| {
+            let mut rng = ChaCha8Rng::seed_from_u64(m.wind_seed ^ 0xE571_3A7E);
+            let std = if m.estimate_std_m.is_finite() {
+                m.estimate_std_m.max(0.0)
+            } else {
+                0.0
+            };
+            let error = std::array::from_fn(|_| {
+                let e: f64 = rng.sample(rand_distr::StandardNormal);
+                std * e
+            });
+            (error, rng)
         });
         let streams = Self::default_streams(&config, now);
         let on_floor = position_ned[2] >= -TOUCHDOWN_M;
@@ -391,6 +411,7 @@ impl MockAutopilot {
             outbox: Vec::new(),
             rejections: Rejections::default(),
             motion,
+            estimate,
         }
     }
 
@@ -1157,6 +1178,28 @@ impl MockAutopilot {
         }
     }
 
+    /// Moves the position estimate's error on by `dt` (a Gauss-Markov step per axis).
+    fn wander_estimate(&mut self, dt: f64) {
+        let (Some((error, rng)), Some(m)) = (self.estimate.as_mut(), self.config.dynamics) else {
+            return;
+        };
+        if !(dt > 0.0 && m.estimate_std_m > 0.0 && m.estimate_time_s > 0.0) {
+            return;
+        }
+        let keep = (-dt / m.estimate_time_s).exp();
+        let fresh = m.estimate_std_m * (1.0 - keep * keep).sqrt();
+        for e in error.iter_mut() {
+            let n: f64 = rng.sample(rand_distr::StandardNormal);
+            *e = *e * keep + fresh * n;
+        }
+    }
+
+    /// Where the autopilot believes it is (m, NED): the truth plus its estimate's error.
+    fn estimated_position(&self) -> [f64; 3] {
+        let e = self.estimate.as_ref().map_or([0.0; 3], |(e, _)| *e);
+        std::array::from_fn(|k| self.position_ned[k] + e[k])
+    }
+
     fn land_speed(&self) -> f64 {
         match self.config.flavour {
             Flavour::Px4 => self.params.get("MPC_LAND_SPEED"),
@@ -1207,6 +1250,7 @@ impl MockAutopilot {
             _ => command,
         };
         let mut flown = if self.landed() { [0.0; 3] } else { flown };
+        self.wander_estimate(dt);
         if dt > 0.0 {
             for (p, v) in self.position_ned.iter_mut().zip(flown) {
                 *p += v * dt;
@@ -1450,7 +1494,7 @@ impl MockAutopilot {
     }
 
     fn local_position(&self, now: f64) -> MavMessage {
-        let p = self.position_ned;
+        let p = self.estimated_position();
         let v = self.velocity_ned;
         MavMessage::LOCAL_POSITION_NED(LOCAL_POSITION_NED_DATA {
             time_boot_ms: self.time_boot_ms(now),
@@ -1464,7 +1508,7 @@ impl MockAutopilot {
     }
 
     fn global_position(&self, now: f64) -> MavMessage {
-        let p = self.position_ned;
+        let p = self.estimated_position();
         let v = self.velocity_ned;
         let home = self.config.home;
         let (latitude, longitude) = home.offset(p[0], p[1]);

@@ -703,3 +703,60 @@ fn an_ardupilot_setpoint_in_the_air_ends_its_takeoff() {
     assert!(p[0] > 0.8, "flies the setpoint: {p:?}");
     assert!(p[2] > -3.0, "no longer climbing to 5 m: {p:?}");
 }
+
+#[test]
+fn with_dynamics_the_reported_position_wanders_from_the_truth_by_the_estimate_error() {
+    let motion = |std: f64| Motion {
+        limits: DynamicsLimits::indoor(),
+        wind: WindConfig::CALM,
+        wind_seed: 9,
+        estimate_std_m: std,
+        estimate_time_s: 5.0,
+    };
+    let reported = |std: f64| {
+        let config = AutopilotConfig {
+            dynamics: Some(motion(std)),
+            ..AutopilotConfig::px4(1)
+        };
+        let mut ap = MockAutopilot::new_flying(config, [2.0, 3.0, -1.0], 0.0);
+        let mut errors = Vec::new();
+        let mut t = 0.0;
+        for _ in 0..3000 {
+            t += 0.1;
+            ap.fly(t);
+            ap.restart_telemetry(t);
+            let truth = ap.position_ned();
+            for m in ap.telemetry(t) {
+                if let MavMessage::LOCAL_POSITION_NED(p) = m {
+                    errors.push([
+                        f64::from(p.x) - truth[0],
+                        f64::from(p.y) - truth[1],
+                        f64::from(p.z) - truth[2],
+                    ]);
+                }
+            }
+        }
+        errors
+    };
+    // Exact without an error, to the f32 the message carries.
+    assert!(reported(0.0).iter().flatten().all(|e| e.abs() < 1e-5));
+    // 0.3 m: each axis spreads about that much over 300 s (60 correlation times), and the error
+    // wanders slowly: from one 0.1 s report to the next it moves by far less than its spread.
+    let errors = reported(0.3);
+    assert!(errors.len() > 2000);
+    for axis in 0..3 {
+        let n = errors.len() as f64;
+        let mean = errors.iter().map(|e| e[axis]).sum::<f64>() / n;
+        let std = (errors.iter().map(|e| (e[axis] - mean).powi(2)).sum::<f64>() / n).sqrt();
+        assert!(std > 0.15 && std < 0.45, "axis {axis}: {std}");
+        let lagged = errors
+            .windows(2)
+            .map(|w| (w[0][axis] - mean) * (w[1][axis] - mean))
+            .sum::<f64>()
+            / (n - 1.0);
+        let correlation = lagged / (std * std);
+        assert!(correlation > 0.9, "axis {axis}: correlation {correlation}");
+    }
+    // Seeded: the same vehicle reports the same errors.
+    assert_eq!(reported(0.3), errors);
+}

@@ -137,6 +137,10 @@ struct MissionArgs {
     /// `room` (0.05 m/s draughts); anything but calm needs a motion model.
     #[arg(long, value_enum, default_value_t = WindArg::Auto)]
     wind: WindArg,
+    /// With dynamics: the standard deviation of the autopilots' position-estimate error per
+    /// axis, m (a Gauss-Markov wander over 5 s) [default: 0.03 in a room, 0 in the arena].
+    #[arg(long)]
+    estimate_noise_m: Option<f64>,
     /// Give up this many simulated seconds after the drones start flying. A mission's abort
     /// limit is mission control's choice, not the scenario's training-episode step limit.
     #[arg(long, default_value_t = 300.0)]
@@ -550,6 +554,15 @@ impl MissionArgs {
         };
         config.dynamics = self.dynamics(scenario);
         config.wind = self.wind(scenario);
+        if let Some(std) = self.estimate_noise_m {
+            if !(std.is_finite() && (0.0..=10.0).contains(&std)) {
+                bail!("--estimate-noise-m must be 0 to 10 m, got {std}");
+            }
+            if config.dynamics.is_none() && std > 0.0 {
+                bail!("--estimate-noise-m needs a motion model (--dynamics off has none)");
+            }
+            config.estimate_std_m = std;
+        }
         if config.dynamics.is_none() && config.wind != WindConfig::CALM {
             bail!("--wind needs --dynamics px4 or room: without a motion model nothing feels it");
         }
