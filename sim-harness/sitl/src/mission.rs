@@ -90,8 +90,8 @@ pub struct SitlConfig {
     /// The autopilots' position-estimate error (with `dynamics` only): each axis of what they
     /// report wanders from the truth as a Gauss-Markov process of this stationary standard
     /// deviation (m) over [`ESTIMATE_TIME_S`]. Defaults: 0.03 m in a room (motion capture or
-    /// ultra-wideband); 0 in the arena, where a GNSS-like 0.5 m still breaks the loop (a
-    /// vertical error that size keeps drones from counting as airborne; `--estimate-noise-m`).
+    /// ultra-wideband); 0 in the arena, where a GNSS-like 0.5 m on every axis from the ground
+    /// up keeps the daemons' takeoff from finishing (`--estimate-noise-m`).
     pub estimate_std_m: f64,
     /// Two drones closer than this (3-D, m) during flight is a separation breach: 0.5 m in a
     /// room-sized arena (50 m or less across), 3 m otherwise.
