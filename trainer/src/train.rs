@@ -270,24 +270,31 @@ pub fn evolve_checkpoint(
 }
 
 /// Appends one evaluation's rows to `eval.csv` (written with its header when new): the learning
-/// curves per scenario that `skyherd-trainer ablation-report` reads.
+/// curves per scenario that `skyherd-trainer ablation-report` reads. Rows already there from
+/// `env_steps` on are dropped first: a resumed run goes back to its last checkpoint and
+/// evaluates those steps again, and its new rows supersede the old ones (one row per
+/// scenario and step, as the report expects).
 fn append_eval_rows(
     path: &Path,
     env_steps: u64,
     task_env_steps: u64,
     rows: &[EvalRow],
 ) -> Result<(), TrainError> {
-    use std::io::Write as _;
-    let new = !path.exists();
-    let mut file = std::fs::OpenOptions::new()
-        .create(true)
-        .append(true)
-        .open(path)
-        .map_err(ReportError::from)?;
-    let mut text = String::new();
-    if new {
-        text.push_str(EVAL_CSV_HEADER);
-        text.push('\n');
+    let old = match std::fs::read_to_string(path) {
+        Ok(text) => text,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => String::new(),
+        Err(e) => return Err(ReportError::from(e).into()),
+    };
+    let mut text = String::with_capacity(old.len() + 128 * rows.len());
+    text.push_str(EVAL_CSV_HEADER);
+    text.push('\n');
+    for line in old.lines().skip(1) {
+        // A row from before `env_steps` stays; one from then on (or unreadable) goes.
+        let step = line.split(',').next().and_then(|v| v.parse::<u64>().ok());
+        if step.is_some_and(|s| s < env_steps) {
+            text.push_str(line);
+            text.push('\n');
+        }
     }
     for r in rows {
         text.push_str(&format!(
@@ -301,7 +308,10 @@ fn append_eval_rows(
             r.mean_time_ratio
         ));
     }
-    file.write_all(text.as_bytes()).map_err(ReportError::from)?;
+    // Written beside and renamed over, so that a crash mid-write leaves the old curve whole.
+    let partial = path.with_extension("csv.partial");
+    std::fs::write(&partial, text.as_bytes()).map_err(ReportError::from)?;
+    std::fs::rename(&partial, path).map_err(ReportError::from)?;
     Ok(())
 }
 
@@ -964,5 +974,52 @@ impl Run<'_> {
             ret
         ));
         Ok((ret, succ))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use skyherd_model::Task;
+
+    fn row(task: Task, targets: usize, success: f64) -> EvalRow {
+        EvalRow {
+            scenario: EvalScenario {
+                task,
+                targets,
+                herders: 4,
+            },
+            episodes: 8,
+            success_rate: success,
+            mean_time_s: 100.0,
+            mean_time_ratio: 2.0,
+            mean_path_length: 500.0,
+        }
+    }
+
+    #[test]
+    fn a_resumed_run_replaces_the_evaluations_it_repeats() {
+        let dir = std::env::temp_dir().join(format!("skyherd-eval-csv-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("eval.csv");
+        let _ = std::fs::remove_file(&path);
+        append_eval_rows(&path, 25_000, 12_500, &[row(Task::Driving, 4, 0.1)]).unwrap();
+        append_eval_rows(&path, 50_000, 25_000, &[row(Task::Driving, 4, 0.2)]).unwrap();
+        append_eval_rows(&path, 75_000, 37_500, &[row(Task::Driving, 4, 0.3)]).unwrap();
+        // Resumed from the checkpoint at 50k: 50k is evaluated again and 75k is gone.
+        append_eval_rows(&path, 50_000, 25_000, &[row(Task::Driving, 4, 0.25)]).unwrap();
+        let text = std::fs::read_to_string(&path).unwrap();
+        let lines: Vec<&str> = text.lines().collect();
+        assert_eq!(lines[0], EVAL_CSV_HEADER);
+        assert_eq!(lines.len(), 3, "{text}");
+        assert!(
+            lines[1].starts_with("25000,12500,driving,4,4,8,0.1,"),
+            "{text}"
+        );
+        assert!(
+            lines[2].starts_with("50000,25000,driving,4,4,8,0.25,"),
+            "{text}"
+        );
+        let _ = std::fs::remove_dir_all(&dir);
     }
 }
