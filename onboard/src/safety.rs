@@ -151,7 +151,8 @@ impl Braking {
         a * (libm::sqrtf(lag * lag + 2.0 * distance / a) - lag)
     }
 
-    fn is_valid(&self) -> bool {
+    /// Both numbers usable: a finite deceleration above 0 and a finite lag of 0 or more.
+    pub fn is_valid(&self) -> bool {
         self.deceleration.is_finite()
             && self.deceleration > 0.0
             && self.lag_s.is_finite()

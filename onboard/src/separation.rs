@@ -39,6 +39,8 @@
 //! assert!((out.velocity[1] + 3.25).abs() < 1e-4);
 //! ```
 
+use crate::safety::Braking;
+
 /// Another drone as this one knows it.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Peer {
@@ -69,17 +71,13 @@ pub struct SeparationConfig {
     pub peer_speed_bound: f32,
     /// Rounds over the peers.
     pub passes: u8,
-    /// How long the vehicle takes to turn a new velocity into flight, s (0: at once). Over it
-    /// both drones keep closing at today's speed, so the gap the rule shares out shrinks by
-    /// `closing * (response_lag_s + age)` first (`age`: how old the peer's position is): with
-    /// an autopilot's lag `tau`, `tau` plus the time its jerk limit takes to reach full
-    /// acceleration (`skyherd-onboard --braking`'s LAG).
-    pub response_lag_s: f32,
-    /// How hard the vehicle can change its velocity, m/s² (infinity: at once). A pair closing
-    /// at `c` needs `c² / (2 a)` more room to stop closing when each takes half of it
-    /// (`c² / (2 a)` with `a` the sum of both decelerations, `2 a` here), the whole of it
-    /// against a stale peer.
-    pub max_deceleration: f32,
+    /// How the vehicle answers a new velocity (`None`: at once): after `lag_s` (an
+    /// autopilot's velocity lag plus its jerk ramp; `skyherd-onboard --braking`'s LAG), at
+    /// `deceleration` at most. A pair closing at `c` keeps closing over the lag and over the
+    /// age of the peer's position, and needs `c^2 / (2 a)` more to stop closing, `a` the
+    /// deceleration of both drones against a fresh peer (each takes its half), of this one
+    /// alone against a stale one: the gap the rule shares out shrinks by all of it first.
+    pub braking: Option<Braking>,
 }
 
 impl SeparationConfig {
@@ -93,8 +91,7 @@ impl SeparationConfig {
             max_peer_age_s: 0.5,
             peer_speed_bound: 5.0,
             passes: 3,
-            response_lag_s: 0.0,
-            max_deceleration: f32::INFINITY,
+            braking: None,
         }
     }
 
@@ -108,8 +105,22 @@ impl SeparationConfig {
             max_peer_age_s: 0.5,
             peer_speed_bound: 0.5,
             passes: 3,
-            response_lag_s: 0.0,
-            max_deceleration: f32::INFINITY,
+            braking: None,
+        }
+    }
+
+    /// Keeping `min_separation` m from drones as fast as `peer_speed_bound` m/s: the room's
+    /// horizon and escape for a separation of 1 m or less (small drones), else the arena's.
+    pub fn keeping(min_separation: f32, peer_speed_bound: f32) -> Self {
+        let base = if min_separation <= 1.0 {
+            Self::room()
+        } else {
+            Self::arena()
+        };
+        Self {
+            min_separation,
+            peer_speed_bound,
+            ..base
         }
     }
 }
@@ -228,19 +239,14 @@ fn half_space(
     // What the pair closes before a new velocity takes hold: over the vehicle's lag, and over
     // the age of a fresh peer's position (it has been closing since; a stale one's growing
     // radius already covers its age).
-    let lag = if config.response_lag_s.is_finite() {
-        config.response_lag_s.max(0.0)
-    } else {
-        0.0
-    } + if stale { 0.0 } else { peer.age_s.max(0.0) };
+    let braking = config.braking.filter(Braking::is_valid);
+    let lag = braking.map_or(0.0, |b| b.lag_s) + if stale { 0.0 } else { peer.age_s.max(0.0) };
     let closing_now = closing.max(0.0);
     // Both drones brake on a fresh peer's half-space; against a stale one, only this one.
-    let braking = if stale { 1.0 } else { 2.0 } * config.max_deceleration;
-    let to_stop = if braking.is_finite() && braking > 0.0 {
-        closing_now * closing_now / (2.0 * braking)
-    } else {
-        0.0
-    };
+    let to_stop = braking.map_or(0.0, |b| {
+        let both = if stale { 1.0 } else { 2.0 } * b.deceleration;
+        closing_now * closing_now / (2.0 * both)
+    });
     let gap = d - radius - closing_now * lag - to_stop;
     let allowed = if d < radius || gap < 0.0 {
         -config.escape_speed.max(0.0)
@@ -403,8 +409,10 @@ mod tests {
         let (min, _) = fly_lagging(&instant, &start, &requests, 12.0, 1.0, tau);
         assert!(min < instant.min_separation, "{min}");
         let lagging = SeparationConfig {
-            response_lag_s: tau,
-            max_deceleration: 3.0,
+            braking: Some(Braking {
+                deceleration: 3.0,
+                lag_s: tau,
+            }),
             ..instant
         };
         let (min, pos) = fly_lagging(&lagging, &start, &requests, 12.0, 1.0, tau);

@@ -29,7 +29,7 @@ use std::path::{Path, PathBuf};
 use skyherd_model::{FloatActor, FormatError, Task};
 use skyherd_onboard::actor::Actor;
 use skyherd_onboard::obs::FEATURES;
-use skyherd_onboard::safety::{self, Limits, Situation};
+use skyherd_onboard::safety::{self, Braking, Limits, Situation};
 use skyherd_onboard::separation::{Peer, SeparationConfig, separate};
 
 /// The separation rule keeps this much beyond the breach distance (as `skyherd-sitl
@@ -75,9 +75,9 @@ pub struct ActorPolicy<A> {
     flight_rules: bool,
     /// Whether the daemon's separation rule applies (see [`ActorPolicy::keeping_apart`]).
     keep_apart: bool,
-    /// The herders' response lag (s) and deceleration (m/s²) the separation rule counts (see
+    /// How the herders answer a new velocity, which the separation rule counts (see
     /// [`ActorPolicy::responding_in`]).
-    response: (f32, f32),
+    braking: Option<Braking>,
     /// The last step seen (`None` after a reset) and its herder positions, for the peers'
     /// velocities.
     previous_step: Option<u64>,
@@ -100,7 +100,7 @@ impl<A: Infer> ActorPolicy<A> {
             features: [0.0; FEATURES],
             flight_rules: false,
             keep_apart: false,
-            response: (0.0, f32::INFINITY),
+            braking: None,
             previous_step: None,
             previous: Vec::new(),
             velocities: Vec::new(),
@@ -118,41 +118,24 @@ impl<A: Infer> ActorPolicy<A> {
         self
     }
 
-    /// The separation rule counts herders that take `lag_s` seconds to fly a new velocity and
-    /// change it at `deceleration` m/s² at most (`SeparationConfig::response_lag_s` and
-    /// `max_deceleration`; with a motion model, [`DynamicsLimits::response_lag_s`] and its
-    /// horizontal acceleration). The default, (0, infinity): they fly it at once.
+    /// The separation rule counts herders that answer a new velocity as `braking` says
+    /// (`SeparationConfig::braking`; with a motion model, its
+    /// [`DynamicsLimits::response_lag_s`] and 1/sqrt(2) of its horizontal acceleration).
+    /// `None`, the default: they fly it at once.
     ///
     /// [`DynamicsLimits::response_lag_s`]: crate::dynamics::DynamicsLimits::response_lag_s
-    pub fn responding_in(mut self, lag_s: f32, deceleration: f32) -> Self {
-        let lag = if lag_s.is_finite() {
-            lag_s.max(0.0)
-        } else {
-            0.0
-        };
-        let decel = if deceleration > 0.0 {
-            deceleration
-        } else {
-            f32::INFINITY
-        };
-        self.response = (lag, decel);
+    pub fn responding_in(mut self, braking: Option<Braking>) -> Self {
+        self.braking = braking;
         self
     }
 
-    /// The separation rule's settings for `world`: the room's (0.5 m) or the arena's (3 m).
+    /// The separation rule's settings for `world`: 10 % beyond its breach distance (the
+    /// room's 0.5 m or the arena's 3 m).
     fn separation(&self, world: &World) -> SeparationConfig {
         let breach = world.area.breach_distance_m() as f32;
-        let base = if breach <= 1.0 {
-            SeparationConfig::room()
-        } else {
-            SeparationConfig::arena()
-        };
         SeparationConfig {
-            min_separation: breach * KEEP_APART_MARGIN,
-            peer_speed_bound: world.limits.herder as f32,
-            response_lag_s: self.response.0,
-            max_deceleration: self.response.1,
-            ..base
+            braking: self.braking,
+            ..SeparationConfig::keeping(breach * KEEP_APART_MARGIN, world.limits.herder as f32)
         }
     }
 
@@ -335,7 +318,7 @@ pub struct ModelPolicy {
     name: String,
     actor: Actor<'static>,
     keep_apart: bool,
-    response: (f32, f32),
+    braking: Option<Braking>,
 }
 
 impl ModelPolicy {
@@ -365,7 +348,7 @@ impl ModelPolicy {
             name,
             actor: Actor::from_bytes(bytes)?,
             keep_apart: false,
-            response: (0.0, f32::INFINITY),
+            braking: None,
         })
     }
 
@@ -377,10 +360,10 @@ impl ModelPolicy {
         self
     }
 
-    /// The same model, its separation rule counting herders that answer in `lag_s` seconds
-    /// and change velocity at `deceleration` m/s² at most ([`ActorPolicy::responding_in`]).
-    pub fn responding_in(mut self, lag_s: f32, deceleration: f32) -> Self {
-        self.response = (lag_s, deceleration);
+    /// The same model, its separation rule counting herders that answer as `braking` says
+    /// ([`ActorPolicy::responding_in`]).
+    pub fn responding_in(mut self, braking: Option<Braking>) -> Self {
+        self.braking = braking;
         self
     }
 
@@ -399,7 +382,7 @@ impl PolicyFactory for ModelPolicy {
         Box::new(
             ActorPolicy::flying(self.actor)
                 .keeping_apart(self.keep_apart)
-                .responding_in(self.response.0, self.response.1),
+                .responding_in(self.braking),
         )
     }
 }

@@ -73,8 +73,9 @@ pub struct EvolutionScenario {
     /// steps, as the mission flies it (its N and M are this entry's).
     #[serde(default)]
     pub indoor: bool,
-    /// Fly the herders through a motion model (`skyherd_sim::HerderDynamics::named`: `px4` or
-    /// `indoor`) instead of at their commands; absent, at once (the paper's protocol).
+    /// Fly the herders through a motion model (a name of `skyherd_sim::HerderDynamics::LIMITS`:
+    /// `px4`, `px4-auto`, `indoor`) instead of at their commands; absent, at once (the paper's
+    /// protocol).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub dynamics: Option<String>,
     /// The wind with `dynamics`: `calm` (the default), `arena` or `room`.

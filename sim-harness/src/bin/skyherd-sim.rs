@@ -16,6 +16,7 @@ use std::sync::Arc;
 use anyhow::{Context, Result, anyhow, bail};
 use clap::{Parser, Subcommand};
 use indicatif::{ProgressBar, ProgressStyle};
+use skyherd_onboard::safety::Braking;
 use skyherd_sim::baseline::Method;
 use skyherd_sim::eval::{
     ConfigResult, SweepSpec, comparison_markdown, run_sweep, to_csv, to_markdown,
@@ -23,7 +24,9 @@ use skyherd_sim::eval::{
 use skyherd_sim::learned::ModelPolicy;
 use skyherd_sim::task::parse_task;
 use skyherd_sim::trace::{TraceLine, step_state_json};
-use skyherd_sim::{Env, HerderCount, PolicyFactory, Scenario, World, plot, run_episode};
+use skyherd_sim::{
+    Env, HerderCount, HerderDynamics, PolicyFactory, Scenario, World, plot, run_episode,
+};
 
 #[derive(Parser)]
 #[command(
@@ -149,6 +152,13 @@ struct EvalArgs {
     command_delay_s: f64,
 }
 
+/// A value's name on the command line (`px4-auto`), as `HerderDynamics::named` takes it.
+fn value_name(value: impl clap::ValueEnum) -> String {
+    value
+        .to_possible_value()
+        .map_or_else(String::new, |v| v.get_name().to_owned())
+}
+
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]
 enum DynamicsArg {
     Px4,
@@ -207,19 +217,19 @@ struct ScenarioArgs {
 /// The policies the command line knows: a baseline by name, or `model:PATH`, a quantized model file
 /// run through the onboard actor as it flies.
 fn policy_factory(name: &str) -> Result<Arc<dyn PolicyFactory>> {
-    policy_factory_apart(name, false, (0.0, f32::INFINITY))
+    policy_factory_apart(name, false, None)
 }
 
 /// The same; `keep_apart`: model files fly with the daemon's separation rule too.
-/// `response`: how long the herders take to fly a new velocity (s) and how hard they can change
-/// it (m/s²), with a motion model, which the separation rule counts.
+/// `braking`: how the herders answer a new velocity (with a motion model), which the separation
+/// rule counts.
 fn policy_factory_apart(
     name: &str,
     keep_apart: bool,
-    response: (f32, f32),
+    braking: Option<Braking>,
 ) -> Result<Arc<dyn PolicyFactory>> {
     if let Some(path) = name.strip_prefix("model:") {
-        let model = ModelPolicy::from_file(path.as_ref())?.responding_in(response.0, response.1);
+        let model = ModelPolicy::from_file(path.as_ref())?.responding_in(braking);
         return Ok(Arc::new(if keep_apart {
             model.keeping_apart()
         } else {
@@ -294,19 +304,15 @@ fn eval_command(args: EvalArgs) -> Result<()> {
             bail!("--wind needs --dynamics: without a motion model nothing feels it")
         }
         None => None,
-        Some(d) => Some(skyherd_sim::scenario::HerderDynamics {
-            limits: match d {
-                DynamicsArg::Px4 => skyherd_sim::dynamics::DynamicsLimits::px4(),
-                DynamicsArg::Px4Auto => skyherd_sim::dynamics::DynamicsLimits::px4_auto(),
-                DynamicsArg::Indoor => skyherd_sim::dynamics::DynamicsLimits::indoor(),
-            },
-            wind: match wind {
-                WindArg::Calm => skyherd_sim::dynamics::WindConfig::CALM,
-                WindArg::Arena => skyherd_sim::dynamics::WindConfig::arena(),
-                WindArg::Room => skyherd_sim::dynamics::WindConfig::room(),
-            },
-            command_delay_s,
-        }),
+        Some(d) => {
+            let (limits, air) = (value_name(d), value_name(wind));
+            let named = HerderDynamics::named(&limits, &air)
+                .ok_or_else(|| anyhow!("no motion model {limits:?} in wind {air:?}"))?;
+            Some(HerderDynamics {
+                command_delay_s,
+                ..named
+            })
+        }
     };
     let spec = SweepSpec {
         tasks: tasks
@@ -318,13 +324,12 @@ fn eval_command(args: EvalArgs) -> Result<()> {
             .map(|m| {
                 // A lagging herder turns late; braking along one axis while turning along the
                 // other gets 1/sqrt(2) of its horizontal limit.
-                let response = dynamics.map_or((0.0, f32::INFINITY), |d| {
-                    (
-                        d.limits.response_lag_s() as f32,
-                        (d.limits.max_accel_horizontal * std::f64::consts::FRAC_1_SQRT_2) as f32,
-                    )
+                let braking = dynamics.map(|d| Braking {
+                    deceleration: (d.limits.max_accel_horizontal * std::f64::consts::FRAC_1_SQRT_2)
+                        as f32,
+                    lag_s: d.limits.response_lag_s() as f32,
                 });
-                policy_factory_apart(m, keep_apart, response)
+                policy_factory_apart(m, keep_apart, braking)
             })
             .collect::<Result<_>>()?,
         herders,

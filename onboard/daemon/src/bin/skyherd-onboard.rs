@@ -198,17 +198,10 @@ fn run(args: RunArgs) -> Result<()> {
         );
     }
     if args.separation_m > 0.0 {
-        // The room's horizon and escape for small drones, the arena's otherwise.
-        let base = if args.separation_m <= 1.0 {
-            SeparationConfig::room()
-        } else {
-            SeparationConfig::arena()
-        };
-        config.separation = Some(SeparationConfig {
-            min_separation: args.separation_m,
-            peer_speed_bound: config.max_speed,
-            ..base
-        });
+        config.separation = Some(SeparationConfig::keeping(
+            args.separation_m,
+            config.max_speed,
+        ));
     }
     if !(args.takeoff_alt_m.is_finite() && (0.3..=100.0).contains(&args.takeoff_alt_m)) {
         bail!(
@@ -220,14 +213,14 @@ fn run(args: RunArgs) -> Result<()> {
     if let Some(spec) = &args.braking {
         match finite_pair(spec, "--braking", "DECELERATION,LAG")? {
             [a, lag] if a > 0.0 && lag >= 0.0 => {
-                config.braking = Some(skyherd_onboard::safety::Braking {
+                let braking = skyherd_onboard::safety::Braking {
                     deceleration: a,
                     lag_s: lag,
-                });
+                };
+                config.braking = Some(braking);
                 // A vehicle that brakes late also turns late: the separation rule counts it.
                 if let Some(separation) = &mut config.separation {
-                    separation.response_lag_s = lag;
-                    separation.max_deceleration = a;
+                    separation.braking = Some(braking);
                 }
             }
             _ => bail!("--braking must be a deceleration > 0 m/s^2 and a lag >= 0 s, got {spec:?}"),

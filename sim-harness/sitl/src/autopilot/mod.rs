@@ -55,7 +55,7 @@ use mavlink::dialects::common::{
     MavSeverity, MavState, MavSysStatusSensor, MavType, MavVtolState, PARAM_VALUE_DATA,
     SET_POSITION_TARGET_LOCAL_NED_DATA, STATUSTEXT_DATA, SYS_STATUS_DATA, TIMESYNC_DATA,
 };
-use rand::{Rng, SeedableRng};
+use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use skyherd_link::Flavour;
 use skyherd_link::{DAEMON_COMPONENT_ID, FlightMode};
@@ -350,8 +350,9 @@ pub struct MockAutopilot {
     rejections: Rejections,
     /// The motion model's state, its wind and the wind's random stream (with `dynamics`).
     motion: Option<(Multicopter, Wind, ChaCha8Rng)>,
-    /// The position estimate's error now (m, NED) and its random stream (with `dynamics`).
-    estimate: Option<([f64; 3], ChaCha8Rng)>,
+    /// The position estimate's error (m, NED) as the wind model's Gauss-Markov process, that
+    /// process's settings and its random stream (with `dynamics`).
+    estimate: Option<(Wind, WindConfig, ChaCha8Rng)>,
 }
 
 impl MockAutopilot {
@@ -370,16 +371,17 @@ impl MockAutopilot {
         });
         let estimate = config.dynamics.map(|m| {
             let mut rng = ChaCha8Rng::seed_from_u64(m.wind_seed ^ 0xE571_3A7E);
-            let std = if m.estimate_std_m.is_finite() {
-                m.estimate_std_m.max(0.0)
-            } else {
-                0.0
+            // The same process as the gusts': a stationary start, then a step per tick.
+            let process = WindConfig {
+                mean: [0.0; 3],
+                gust_std: if m.estimate_std_m.is_finite() {
+                    m.estimate_std_m.max(0.0)
+                } else {
+                    0.0
+                },
+                gust_time: m.estimate_time_s,
             };
-            let error = std::array::from_fn(|_| {
-                let e: f64 = rng.sample(rand_distr::StandardNormal);
-                std * e
-            });
-            (error, rng)
+            (Wind::new(&process, &mut rng), process, rng)
         });
         let streams = Self::default_streams(&config, now);
         let on_floor = position_ned[2] >= -TOUCHDOWN_M;
@@ -1178,25 +1180,19 @@ impl MockAutopilot {
         }
     }
 
-    /// Moves the position estimate's error on by `dt` (a Gauss-Markov step per axis).
+    /// Moves the position estimate's error on by `dt`.
     fn wander_estimate(&mut self, dt: f64) {
-        let (Some((error, rng)), Some(m)) = (self.estimate.as_mut(), self.config.dynamics) else {
-            return;
-        };
-        if !(dt > 0.0 && m.estimate_std_m > 0.0 && m.estimate_time_s > 0.0) {
-            return;
-        }
-        let keep = (-dt / m.estimate_time_s).exp();
-        let fresh = m.estimate_std_m * (1.0 - keep * keep).sqrt();
-        for e in error.iter_mut() {
-            let n: f64 = rng.sample(rand_distr::StandardNormal);
-            *e = *e * keep + fresh * n;
+        if let Some((error, process, rng)) = self.estimate.as_mut() {
+            error.step(process, dt, rng);
         }
     }
 
     /// Where the autopilot believes it is (m, NED): the truth plus its estimate's error.
     fn estimated_position(&self) -> [f64; 3] {
-        let e = self.estimate.as_ref().map_or([0.0; 3], |(e, _)| *e);
+        let e = self
+            .estimate
+            .as_ref()
+            .map_or([0.0; 3], |(error, process, _)| error.velocity(process));
         std::array::from_fn(|k| self.position_ned[k] + e[k])
     }
 

@@ -182,6 +182,13 @@ const KEEP_APART_MARGIN: f64 = skyherd_sim::learned::KEEP_APART_MARGIN as f64;
 /// the run): scripts can tell a failed mission from a broken one.
 const MISSION_FAILED: u8 = 2;
 
+/// A value's name on the command line (`px4-auto`).
+fn value_name(value: impl clap::ValueEnum) -> String {
+    value
+        .to_possible_value()
+        .map_or_else(String::new, |v| v.get_name().to_owned())
+}
+
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]
 enum DynamicsArg {
     Auto,
@@ -290,8 +297,8 @@ fn main() -> Result<std::process::ExitCode> {
     let (dynamics, wind) = cli.flight_names(&scenario);
     let flight = FlightSettings {
         model: cli.model(&scenario).display().to_string(),
-        dynamics: dynamics.to_owned(),
-        wind: wind.to_owned(),
+        dynamics,
+        wind,
         keep_apart: cli.keeps_apart(),
     };
     say(format!(
@@ -390,8 +397,15 @@ fn main() -> Result<std::process::ExitCode> {
     // The ground ends on its own once it has seen the mission through; give it a moment.
     let ground_summary = read_ground_summary(&mut ground, Duration::from_secs(3));
     drop(daemons);
-    let mut result = mission_result(&sitl, &scenario, seed, &world, wall_s, ground_summary);
-    result.flight = flight.clone();
+    let result = mission_result(
+        &sitl,
+        &scenario,
+        seed,
+        &world,
+        wall_s,
+        ground_summary,
+        flight,
+    );
     let result_path = cli.out.join("result.json");
     std::fs::write(&result_path, serde_json::to_string_pretty(&result)?)?;
     let title = format!(
@@ -440,44 +454,47 @@ impl MissionArgs {
         scenario.area.breach_distance_m() <= 1.0
     }
 
-    /// The motion model `--dynamics` names for `scenario` (`auto`: the room's or PX4's).
+    /// `--dynamics` and `--wind` for `scenario`, `auto` resolved: the room's model and draughts
+    /// in a room, PX4's and the arena's wind in the arena, and no wind without a model.
+    fn flight(&self, scenario: &Scenario) -> (DynamicsArg, WindArg) {
+        let room = Self::is_room(scenario);
+        let dynamics = match self.dynamics {
+            DynamicsArg::Auto if room => DynamicsArg::Room,
+            DynamicsArg::Auto => DynamicsArg::Px4,
+            chosen => chosen,
+        };
+        let wind = match self.wind {
+            WindArg::Auto if matches!(dynamics, DynamicsArg::Off) => WindArg::Calm,
+            WindArg::Auto if room => WindArg::Room,
+            WindArg::Auto => WindArg::Arena,
+            chosen => chosen,
+        };
+        (dynamics, wind)
+    }
+
+    /// The motion model in force for `scenario` (none with `--dynamics off`).
     fn dynamics(&self, scenario: &Scenario) -> Option<DynamicsLimits> {
-        match self.dynamics {
-            DynamicsArg::Auto if Self::is_room(scenario) => Some(DynamicsLimits::indoor()),
-            DynamicsArg::Auto | DynamicsArg::Px4 => Some(DynamicsLimits::px4()),
+        match self.flight(scenario).0 {
             DynamicsArg::Off => None,
+            DynamicsArg::Auto | DynamicsArg::Px4 => Some(DynamicsLimits::px4()),
             DynamicsArg::Px4Auto => Some(DynamicsLimits::px4_auto()),
             DynamicsArg::Room => Some(DynamicsLimits::indoor()),
         }
     }
 
-    /// The names of the flight model and wind in force, for the console and result.json.
-    fn flight_names(&self, scenario: &Scenario) -> (&'static str, &'static str) {
-        let dynamics = match (self.dynamics, Self::is_room(scenario)) {
-            (DynamicsArg::Auto, true) | (DynamicsArg::Room, _) => "room",
-            (DynamicsArg::Auto, false) | (DynamicsArg::Px4, _) => "px4",
-            (DynamicsArg::Px4Auto, _) => "px4-auto",
-            (DynamicsArg::Off, _) => "off",
-        };
-        let wind = match self.wind(scenario) {
-            w if w == WindConfig::CALM => "calm",
-            w if w == WindConfig::room() => "room",
-            w if w == WindConfig::arena() => "arena",
-            _ => "custom",
-        };
-        (dynamics, wind)
-    }
-
-    /// The wind `--wind` names for `scenario` (`auto`: calm without dynamics, else the room's
-    /// or the arena's).
+    /// The wind in force for `scenario`.
     fn wind(&self, scenario: &Scenario) -> WindConfig {
-        match self.wind {
-            WindArg::Auto if self.dynamics(scenario).is_none() => WindConfig::CALM,
-            WindArg::Auto if Self::is_room(scenario) => WindConfig::room(),
-            WindArg::Auto | WindArg::Arena => WindConfig::arena(),
-            WindArg::Calm => WindConfig::CALM,
+        match self.flight(scenario).1 {
+            WindArg::Auto | WindArg::Calm => WindConfig::CALM,
+            WindArg::Arena => WindConfig::arena(),
             WindArg::Room => WindConfig::room(),
         }
+    }
+
+    /// The names of the motion model and wind in force, for the console and result.json.
+    fn flight_names(&self, scenario: &Scenario) -> (String, String) {
+        let (dynamics, wind) = self.flight(scenario);
+        (value_name(dynamics), value_name(wind))
     }
 
     /// Whether the daemons run the separation rule (on unless `--no-keep-apart`).
@@ -564,7 +581,7 @@ impl MissionArgs {
             config.estimate_std_m = std;
         }
         if config.dynamics.is_none() && config.wind != WindConfig::CALM {
-            bail!("--wind needs --dynamics px4 or room: without a motion model nothing feels it");
+            bail!("--wind needs a motion model (--dynamics other than off): nothing else feels it");
         }
         if let Some(spec) = &self.cut_uplink {
             // The ground applies it; checked here so that a bad value stops the mission before
@@ -755,6 +772,7 @@ fn mission_result(
     world: &World,
     wall_s: f64,
     ground: serde_json::Value,
+    flight: FlightSettings,
 ) -> MissionResult {
     let touchdown_s = sitl.touchdowns();
     let (ending, end_s) = match sitl.ending() {
@@ -794,7 +812,7 @@ fn mission_result(
         landing_start_s: sitl.landing_starts(),
         touchdown_s,
         left_area: sitl.left_area().to_vec(),
-        flight: FlightSettings::default(),
+        flight,
     }
 }
 
