@@ -518,6 +518,18 @@ impl<P: OnboardPolicy> DaemonCore<P> {
         self.counters
     }
 
+    /// Lockstep: the snapshot stamped `now` counts as heard at `now`. The simulator sends it
+    /// before the positions of that instant, but the two links' reader threads may deliver it
+    /// just before or just after the position; without this its age (which the separation
+    /// and safety rules read) would depend on which came first.
+    pub fn heard_snapshot_at(&mut self, now: Millis) {
+        if let Some((snapshot, received)) = self.world.as_mut()
+            && snapshot.timestamp_ms.abs_diff(now.0) <= 1
+        {
+            *received = now;
+        }
+    }
+
     /// Ground timestamp (ms) of the newest world snapshot accepted, if any.
     pub fn snapshot_timestamp_ms(&self) -> Option<u64> {
         self.world

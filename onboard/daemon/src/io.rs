@@ -71,9 +71,15 @@ pub enum ClockMode {
         rate_hz: f32,
     },
     /// The autopilot's `time_boot_ms`; one control tick per LOCAL_POSITION_NED. The ground's
-    /// snapshots are expected on the same simulated clock: a tick waits briefly for the
-    /// snapshot of its instant (see `LOCKSTEP_SNAPSHOT_WAIT`).
-    Simulator,
+    /// snapshots are expected on the same simulated clock: a tick waits for the snapshot of
+    /// its instant, briefly (`LOCKSTEP_SNAPSHOT_WAIT`) or, once snapshots keep pace and the
+    /// autopilot waits for this daemon, patiently (`LOCKSTEP_SNAPSHOT_PATIENCE`).
+    Simulator {
+        /// The simulator steps the autopilot only after this daemon's answer (a mock in
+        /// lockstep). `false` for an autopilot on its own clock (a real ArduCopter SITL),
+        /// whose positions may run ahead of the snapshots: it is never waited on long.
+        lockstep: bool,
+    },
 }
 
 /// How to reach the autopilot and the ground.
@@ -506,16 +512,26 @@ pub struct Daemon<P> {
     /// the request's retry is the shell's business, not the core's).
     position_heard_at: Option<Instant>,
     positions_requested_at: Option<Instant>,
+    /// Lockstep: the last tick's snapshot came in time, so the next is waited for patiently.
+    snapshots_keep_pace: bool,
 }
 
 /// How long reader threads block before looking at the stop flag.
 const READ_TIMEOUT: Duration = Duration::from_millis(100);
 
-/// Lockstep: longest wall-time wait for the snapshot of a position's instant. Keep it well
-/// under the simulator's own wait for the answer (`SitlConfig::lockstep_timeout`, 50 ms):
-/// before the mission starts no snapshot comes, every tick waits this long, and an answer later
-/// than the simulator waits would land in the next tick.
+/// Lockstep: longest wall-time wait for the snapshot of a position's instant while snapshots
+/// are not coming (before the mission, an uplink cut). Keep it well under the simulator's
+/// short wait for the answer (`SitlConfig::lockstep_timeout`, 50 ms): before the mission
+/// every tick waits this long, and an answer later than the simulator waits would land in the
+/// next tick.
 pub(crate) const LOCKSTEP_SNAPSHOT_WAIT: Duration = Duration::from_millis(20);
+
+/// Lockstep: longest wall-time wait for the snapshot of a position's instant while snapshots
+/// keep pace (the last one came in time): a loaded machine can delay the ground's process or
+/// this reader thread past [`LOCKSTEP_SNAPSHOT_WAIT`], and a tick flown on the previous
+/// snapshot would make the mission differ from run to run. Under the simulator's patience
+/// (`SitlConfig::lockstep_patience`, 2 s) for a daemon that kept pace.
+pub(crate) const LOCKSTEP_SNAPSHOT_PATIENCE: Duration = Duration::from_secs(1);
 
 /// Whether a snapshot stamped `snapshot_ms` (the ground's clock) is older than the position
 /// of `now` (the autopilot's clock), both simulated time in lockstep. A millisecond of slack
@@ -796,6 +812,7 @@ impl<P: OnboardPolicy> Daemon<P> {
             counters: ShellCounters::default(),
             ground_sequence: 0,
             position_heard_at: None,
+            snapshots_keep_pace: false,
             positions_requested_at: None,
             stop,
         })
@@ -847,7 +864,7 @@ impl<P: OnboardPolicy> Daemon<P> {
             }
             let wait = match self.clock {
                 ClockMode::Wall { .. } => next_tick.since(wall_now()).min(READ_TIMEOUT),
-                ClockMode::Simulator => READ_TIMEOUT,
+                ClockMode::Simulator { .. } => READ_TIMEOUT,
             };
             let event = match self.events.recv_timeout(wait) {
                 Ok(event) => Some(event),
@@ -903,10 +920,10 @@ impl<P: OnboardPolicy> Daemon<P> {
                     // Until the first position the autopilot needs one to learn where we
                     // are; from then on it gets one with every tick's answer, and only then:
                     // the simulator takes it for the end of that answer.
-                    ClockMode::Simulator if self.core.own_position().is_none() => {
+                    ClockMode::Simulator { .. } if self.core.own_position().is_none() => {
                         self.send_heartbeats();
                     }
-                    ClockMode::Simulator => self.send_ground_heartbeat(),
+                    ClockMode::Simulator { .. } => self.send_ground_heartbeat(),
                 }
                 next_heartbeat = now.after(HEARTBEAT_PERIOD);
             }
@@ -929,7 +946,14 @@ impl<P: OnboardPolicy> Daemon<P> {
     /// depend on thread scheduling. When none comes (no mission yet, an uplink cut), the tick
     /// goes on with what there is after the wait.
     fn await_snapshot_of(&mut self, now: Millis) {
-        let deadline = Instant::now() + LOCKSTEP_SNAPSHOT_WAIT;
+        let lockstep = matches!(self.clock, ClockMode::Simulator { lockstep: true });
+        let wait = if self.snapshots_keep_pace && lockstep {
+            LOCKSTEP_SNAPSHOT_PATIENCE
+        } else {
+            LOCKSTEP_SNAPSHOT_WAIT
+        };
+        let deadline = Instant::now() + wait;
+        self.snapshots_keep_pace = false;
         while snapshot_is_behind(self.core.snapshot_timestamp_ms(), now) {
             let Some(left) = deadline.checked_duration_since(Instant::now()) else {
                 return;
@@ -939,6 +963,8 @@ impl<P: OnboardPolicy> Daemon<P> {
                 Err(_) => return,
             }
         }
+        self.core.heard_snapshot_at(now);
+        self.snapshots_keep_pace = true;
     }
 
     /// Writes the replay state when it changed (a failure is logged: flying on beats stopping,

@@ -41,7 +41,7 @@
 //!     signing_key: Some([0x42; 32]),
 //!     autopilot_key: None,  // or the key the autopilot verifies
 //!     replay_state: None,   // or a file, so that a restart keeps refusing old frames
-//!     clock: ClockMode::Simulator,
+//!     clock: ClockMode::Simulator { lockstep: true },
 //! };
 //! let mut daemon = Daemon::connect(&options, core).unwrap();
 //! println!("uplink to {}", daemon.ground_address().unwrap());

@@ -391,7 +391,7 @@ fn daemon_startup_errors_are_clear() {
         replay_state: None,
         autopilot_key: None,
         signing_key: None,
-        clock: ClockMode::Simulator,
+        clock: ClockMode::Simulator { lockstep: true },
     };
     let core = DaemonCore::new(CoreConfig::new(DRONE, 0, Flavour::Px4), actor);
     let Err(err) = Daemon::connect(&options, core) else {
@@ -418,7 +418,7 @@ fn sim_clock_ticks_once_per_position_at_simulator_time() {
             replay_state: None,
             autopilot_key: None,
             signing_key: Some(KEY),
-            clock: ClockMode::Simulator,
+            clock: ClockMode::Simulator { lockstep: true },
         };
         let core = DaemonCore::new(CoreConfig::new(DRONE, 0, Flavour::Px4), actor);
         let mut daemon = Daemon::connect(&options, core).unwrap();

@@ -160,6 +160,9 @@ pub fn daemon_command(
         cmd.arg("--autopilot-key")
             .arg(plan.keys.join(KeyFolder::FLEET));
     }
+    if !autopilot.lockstep {
+        cmd.arg("--autopilot-runs-free");
+    }
     if let Some([east, north]) = autopilot.local_origin {
         cmd.arg("--local-origin").arg(format!("{east},{north}"));
     }

@@ -9,21 +9,27 @@
 //!    [`skyherd_sim::world::advance`]), and each autopilot is told where the world put its drone;
 //! 3. on sensor ticks the detection sensor scans the targets and sends the scan (MAVLink
 //!    `DEBUG_VECT`, see `skyherd_ground::detections`) to the ground station, and the loop waits
-//!    (up to [`SitlConfig::lockstep_timeout`] of wall time) for the ground's acknowledgement
-//!    (`det_ack`), sent once it has tracked the scan and sent its snapshot up;
+//!    for the ground's acknowledgement (`det_ack`), sent once it has tracked the scan and sent
+//!    its snapshot up;
 //! 4. every autopilot sends its telemetry, stamped with the simulated time: the position the
 //!    world just put it at. A daemon answers each position, so it decides on its own position
 //!    and targets of the same instant, as a policy does in the simulator (the other drones'
 //!    positions in the snapshot are one tick older: the ground hears them in step 4);
-//! 5. **lockstep**: every drone whose daemon has been heard is waited for (up to the lockstep
-//!    timeout) until it has answered this tick's position. The daemon ends each answer with a
-//!    heartbeat, so the pre-flight, before any setpoint, is in lockstep too. The loop runs as
-//!    fast as the processes allow and never outruns them; the answer is flown in the next
-//!    tick's step 1.
+//! 5. **lockstep**: every drone whose daemon has been heard is waited for until it has answered
+//!    this tick's position. The daemon ends each answer with a heartbeat, so the pre-flight,
+//!    before any setpoint, is in lockstep too. The loop runs as fast as the processes allow and
+//!    never outruns them; the answer is flown in the next tick's step 1.
+//!
+//! Waits (steps 3 and 5) are patient ([`SitlConfig::lockstep_patience`], 2 s of wall time) for
+//! a process that answered its last tick, brief ([`SitlConfig::lockstep_timeout`], 50 ms) for
+//! one that did not (a dead daemon costs the mission 50 ms a tick, not 2 s) and on links that
+//! lose datagrams on purpose; a wait given up during the episode is a lockstep miss.
 //!
 //! Nothing depends on how long anything takes in wall time: the pre-roll only listens,
 //! simulated time starts on the next whole second, the world holds still until every drone
-//! flies, and the sensor's noise restarts at takeoff. A seed reproduces its mission.
+//! flies, and the sensor's noise, the wind's gusts and the autopilots' estimate errors start
+//! at the release (before it the air is calm). A seed reproduces its mission, unless a wait
+//! was given up (`lockstep_misses` in result.json).
 //!
 //! The world is integrated with the tick as its time step: for the `indoor` preset that is the
 //! scenario's own 0.1 s; for the paper presets (1 s steps) it integrates the same velocity field
@@ -70,8 +76,15 @@ pub struct SitlConfig {
     pub faults: FaultConfig,
     /// Sensor model.
     pub sensor: SensorConfig,
-    /// How long to wait for a streaming daemon's answer, wall time.
+    /// How long to wait for a streaming daemon's answer, wall time, once it has missed a
+    /// tick (a daemon that died or was cut off costs this each tick) or while the autopilot
+    /// links carry faults (a lost datagram is no answer at all).
     pub lockstep_timeout: Duration,
+    /// How long to wait, wall time, for a daemon or ground station that answered its last
+    /// tick in time: on a loaded machine a live process can take longer than
+    /// `lockstep_timeout`, and going on without its answer would make the mission differ from
+    /// run to run.
+    pub lockstep_patience: Duration,
     /// 0 = as fast as possible; 1 = real time; k = k times real time.
     pub speed: f64,
     /// Give up this many simulated seconds after the start of flight.
@@ -140,6 +153,10 @@ pub struct AutopilotLink {
     pub local_origin: Option<[f64; 2]>,
     /// The autopilot's family (`--flavour`).
     pub flavour: Flavour,
+    /// The simulator steps this autopilot in lockstep with the daemon's answers (a mock);
+    /// `false` for a real ArduCopter, which runs on its own clock
+    /// (`skyherd-onboard --autopilot-runs-free`).
+    pub lockstep: bool,
 }
 
 /// How long (wall time) a tick waits for a real ArduCopter's clock before the mission fails.
@@ -154,7 +171,8 @@ pub const AIRBORNE_TOLERANCE_M: f64 = 0.15;
 
 impl SitlConfig {
     /// Defaults for a scenario: 0.1 s ticks and scans, sensor noise from the scenario's sensing
-    /// noise with 95 % detection and no false alarms, 50 ms lockstep wait, as fast as
+    /// noise with 95 % detection and no false alarms, 50 ms lockstep wait (2 s for a process
+    /// that kept pace), as fast as
     /// possible, the scenario's step limit as time limit, a ground that acknowledges scans.
     pub fn new(scenario: Scenario, seed: u64, ground: SocketAddr) -> Self {
         let sensor = SensorConfig::for_scenario(&scenario);
@@ -174,6 +192,7 @@ impl SitlConfig {
             faults: FaultConfig::default(),
             sensor,
             lockstep_timeout: Duration::from_millis(50),
+            lockstep_patience: Duration::from_secs(2),
             speed: 0.0,
             time_limit_s,
             lose_drone: None,
@@ -392,6 +411,10 @@ pub struct SitlWorld {
     before: Vec<[f64; 3]>,
     wall_start: Instant,
     lockstep_misses: u64,
+    /// Drones (by index) whose daemon missed its last lockstep answer: they get the short wait.
+    late_daemons: Vec<bool>,
+    /// The ground missed its last acknowledgement.
+    ground_late: bool,
     /// Drones whose daemon is dead: not waited for.
     daemons_gone: Vec<usize>,
     ground_acking: bool,
@@ -513,6 +536,8 @@ impl SitlWorld {
             before: Vec::with_capacity(herders),
             wall_start: Instant::now(),
             lockstep_misses: 0,
+            late_daemons: vec![false; herders],
+            ground_late: false,
             daemons_gone: Vec::new(),
             ground_acking,
             acked_scan: f64::NEG_INFINITY,
@@ -590,6 +615,7 @@ impl SitlWorld {
                     signed: false,
                     local_origin: Some([origin[0], origin[1]]),
                     flavour: Flavour::ArduPilot,
+                    lockstep: false,
                 });
             } else if let Some(addr) = node.as_ref().and_then(|n| n.local_addr().ok()) {
                 links.push(AutopilotLink {
@@ -597,6 +623,7 @@ impl SitlWorld {
                     signed: true,
                     local_origin: None,
                     flavour: self.config.autopilot,
+                    lockstep: true,
                 });
             }
         }
@@ -677,7 +704,10 @@ impl SitlWorld {
         }
     }
 
-    /// Ticks in which a streaming daemon did not answer within the lockstep timeout.
+    /// Waits given up during the episode (from the release to its ending), on a streaming
+    /// daemon's answer or the ground's acknowledgement: each may have changed the mission, so a
+    /// seeded run reproduces another only when both have none. (Before the release the world
+    /// holds still; after the ending the ground stops answering on purpose.)
     pub fn lockstep_misses(&self) -> u64 {
         self.lockstep_misses
     }
@@ -728,7 +758,7 @@ impl SitlWorld {
                 self.time_s = now;
                 self.next_scan = now;
                 for node in self.nodes.iter_mut().flatten() {
-                    node.autopilot_mut().restart_telemetry(now);
+                    node.autopilot_mut().start_episode(now);
                 }
                 self.wall_start = Instant::now()
                     - Duration::from_secs_f64(now / self.config.speed.max(1e-9))
@@ -804,6 +834,10 @@ impl SitlWorld {
             // The episode's sensor noise starts with the episode, not after however many
             // scans the pre-flight took.
             self.sensor.reseed(sensor_seed(self.config.seed));
+            // So do the wind and the position estimate's error.
+            for node in self.nodes.iter_mut().flatten() {
+                node.autopilot_mut().release();
+            }
         }
         // 2. The world, with the velocities flown; then the autopilots follow the world. Until
         // every drone flies it holds still: the vehicles are released at takeoff, as a
@@ -954,10 +988,14 @@ impl SitlWorld {
             // Scans are stamped to the microsecond.
             let scanned = self.next_scan - self.config.sensor_period_s;
             if !self.ground_acking || self.acked_scan >= scanned - 1e-6 {
+                self.ground_late = false;
                 return Ok(());
             }
-            if start.elapsed() > self.config.lockstep_timeout {
-                self.lockstep_misses += 1;
+            // Once the episode has ended the ground stops acknowledging on purpose.
+            let late = self.ground_late || self.ending.is_some();
+            if start.elapsed() > self.lockstep_wait(late) {
+                self.count_miss();
+                self.ground_late = true;
                 return Ok(());
             }
             thread::sleep(Duration::from_micros(50));
@@ -974,30 +1012,60 @@ impl SitlWorld {
                 .companion_heartbeat_at()
                 .is_some_and(|at| at < t - 1e-9)
         };
+        // Each daemon is waited for as long as its record allows: a miss gives up on it for
+        // this tick only.
+        let mut given_up = vec![false; self.nodes.len()];
+        let (patient, brief) = (self.lockstep_wait(false), self.lockstep_wait(true));
         loop {
             let mut waiting = false;
-            let gone = &self.daemons_gone;
-            let live = self
-                .nodes
-                .iter_mut()
-                .enumerate()
-                .filter(|(i, _)| !gone.contains(i))
-                .filter_map(|(_, n)| n.as_mut());
-            for node in live {
-                if unanswered(node) {
-                    // Same `t`: the autopilot receives without moving or re-sending telemetry.
-                    node.step(t)?;
-                    waiting |= unanswered(node);
+            let elapsed = start.elapsed();
+            for (i, gave_up) in given_up.iter_mut().enumerate() {
+                if self.daemons_gone.contains(&i) || *gave_up {
+                    continue;
+                }
+                let Some(node) = self.nodes[i].as_mut() else {
+                    continue;
+                };
+                if !unanswered(node) {
+                    continue;
+                }
+                // Same `t`: the autopilot receives without moving or re-sending telemetry.
+                node.step(t)?;
+                if !unanswered(node) {
+                    self.late_daemons[i] = false;
+                } else if elapsed > if self.late_daemons[i] { brief } else { patient } {
+                    self.count_miss();
+                    self.late_daemons[i] = true;
+                    *gave_up = true;
+                } else {
+                    waiting = true;
                 }
             }
             if !waiting {
                 return Ok(());
             }
-            if start.elapsed() > self.config.lockstep_timeout {
-                self.lockstep_misses += 1;
-                return Ok(());
-            }
             thread::sleep(Duration::from_micros(50));
+        }
+    }
+
+    fn count_miss(&mut self) {
+        if self.flight_start.is_some() && self.ending.is_none() {
+            self.lockstep_misses += 1;
+        }
+    }
+
+    /// How long to wait for a process's lockstep answer: patiently for one that kept pace,
+    /// briefly for one that missed its last answer or when the links lose datagrams on
+    /// purpose.
+    fn lockstep_wait(&self, late: bool) -> Duration {
+        let faults = &self.config.faults;
+        let lossy = faults.loss > 0.0 || faults.latency > 0.0 || !faults.cuts.is_empty();
+        if late || lossy {
+            self.config.lockstep_timeout
+        } else {
+            self.config
+                .lockstep_patience
+                .max(self.config.lockstep_timeout)
         }
     }
 }

@@ -86,6 +86,11 @@ struct RunArgs {
     /// Take time from the autopilot's time_boot_ms and tick once per LOCAL_POSITION_NED.
     #[arg(long)]
     sim_clock: bool,
+    /// With --sim-clock: the autopilot runs on its own clock (a real ArduCopter SITL) rather
+    /// than waiting for this daemon's answers (a lockstep simulator's mock), so its positions
+    /// may run ahead of the ground's snapshots and a tick never waits long for one.
+    #[arg(long, requires = "sim_clock")]
+    autopilot_runs_free: bool,
     /// Speed limit, m/s [default: the model's].
     #[arg(long)]
     max_speed: Option<f32>,
@@ -236,7 +241,9 @@ fn run(args: RunArgs) -> Result<()> {
         );
     }
     let clock = if args.sim_clock {
-        ClockMode::Simulator
+        ClockMode::Simulator {
+            lockstep: !args.autopilot_runs_free,
+        }
     } else {
         ClockMode::Wall {
             rate_hz: args.rate_hz,

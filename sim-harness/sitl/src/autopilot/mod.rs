@@ -349,40 +349,26 @@ pub struct MockAutopilot {
     outbox: Vec<MavMessage>,
     rejections: Rejections,
     /// The motion model's state, its wind and the wind's random stream (with `dynamics`).
-    motion: Option<(Multicopter, Wind, ChaCha8Rng)>,
+    motion: Option<MotionState>,
     /// The position estimate's error (m, NED) as the wind model's Gauss-Markov process, that
     /// process's settings and its random stream (with `dynamics`).
-    estimate: Option<(Wind, WindConfig, ChaCha8Rng)>,
+    estimate: Option<EstimateError>,
+    /// Between [`start_episode`](Self::start_episode) and [`release`](Self::release): the
+    /// air is calm and the estimate exact, and neither random stream draws.
+    random_held: bool,
 }
+
+/// The motion model's vehicle, its wind and the wind's random stream.
+type MotionState = (Multicopter, Wind, ChaCha8Rng);
+/// The position estimate's error, its process's settings and its random stream.
+type EstimateError = (Wind, WindConfig, ChaCha8Rng);
 
 impl MockAutopilot {
     /// A disarmed autopilot booted at `now` (s), at `position_ned` (m): on the ground when that
     /// is on the floor (z >= -[`TOUCHDOWN_M`]), else falling to it.
     pub fn new(config: AutopilotConfig, position_ned: [f64; 3], now: f64) -> Self {
         let mode = config.flavour.hold_mode();
-        let motion = config.dynamics.map(|m| {
-            let mut rng = ChaCha8Rng::seed_from_u64(m.wind_seed);
-            let wind = Wind::new(&m.wind, &mut rng);
-            (
-                Multicopter::hovering_at(ned_to_sim(position_ned)),
-                wind,
-                rng,
-            )
-        });
-        let estimate = config.dynamics.map(|m| {
-            let mut rng = ChaCha8Rng::seed_from_u64(m.wind_seed ^ 0xE571_3A7E);
-            // The same process as the gusts': a stationary start, then a step per tick.
-            let process = WindConfig {
-                mean: [0.0; 3],
-                gust_std: if m.estimate_std_m.is_finite() {
-                    m.estimate_std_m.max(0.0)
-                } else {
-                    0.0
-                },
-                gust_time: m.estimate_time_s,
-            };
-            (Wind::new(&process, &mut rng), process, rng)
-        });
+        let (motion, estimate) = Self::random_processes(&config, position_ned);
         let streams = Self::default_streams(&config, now);
         let on_floor = position_ned[2] >= -TOUCHDOWN_M;
         Self {
@@ -412,9 +398,42 @@ impl MockAutopilot {
             acceleration: [0.0; 3],
             outbox: Vec::new(),
             rejections: Rejections::default(),
+            random_held: false,
             motion,
             estimate,
         }
+    }
+
+    /// The motion model (at `position_ned`, at rest) and the position estimate's error, each
+    /// with its random stream at the start of its seeded sequence (`None` without dynamics).
+    fn random_processes(
+        config: &AutopilotConfig,
+        position_ned: [f64; 3],
+    ) -> (Option<MotionState>, Option<EstimateError>) {
+        let motion = config.dynamics.as_ref().map(|m| {
+            let mut rng = ChaCha8Rng::seed_from_u64(m.wind_seed);
+            let wind = Wind::new(&m.wind, &mut rng);
+            (
+                Multicopter::hovering_at(ned_to_sim(position_ned)),
+                wind,
+                rng,
+            )
+        });
+        let estimate = config.dynamics.as_ref().map(|m| {
+            let mut rng = ChaCha8Rng::seed_from_u64(m.wind_seed ^ 0xE571_3A7E);
+            // The same process as the gusts': a stationary start, then a step per tick.
+            let process = WindConfig {
+                mean: [0.0; 3],
+                gust_std: if m.estimate_std_m.is_finite() {
+                    m.estimate_std_m.max(0.0)
+                } else {
+                    0.0
+                },
+                gust_time: m.estimate_time_s,
+            };
+            (Wind::new(&process, &mut rng), process, rng)
+        });
+        (motion, estimate)
     }
 
     /// An autopilot already flying at `position_ned`: armed, in the air, holding (as after
@@ -1182,7 +1201,9 @@ impl MockAutopilot {
 
     /// Moves the position estimate's error on by `dt`.
     fn wander_estimate(&mut self, dt: f64) {
-        if let Some((error, process, rng)) = self.estimate.as_mut() {
+        if let Some((error, process, rng)) = self.estimate.as_mut()
+            && !self.random_held
+        {
             error.step(process, dt, rng);
         }
     }
@@ -1192,6 +1213,7 @@ impl MockAutopilot {
         let e = self
             .estimate
             .as_ref()
+            .filter(|_| !self.random_held)
             .map_or([0.0; 3], |(error, process, _)| error.velocity(process));
         std::array::from_fn(|k| self.position_ned[k] + e[k])
     }
@@ -1222,7 +1244,12 @@ impl MockAutopilot {
                 command = [0.0; 3];
             }
         }
-        let dt = self.last_tick.map_or(0.0, |last| (now - last).max(0.0));
+        // To the microsecond (MAVLink's time resolution): a tick is the same step whatever
+        // time it starts at, so the motion model takes as many sub-steps (and the wind as many
+        // draws) after a pre-flight of any length.
+        let dt = self
+            .last_tick
+            .map_or(0.0, |last| ((now - last) * 1e6).round().max(0.0) / 1e6);
         // What the vehicle flies: the command at once, or where the motion model has got to.
         let flown = match (self.motion.as_mut(), self.config.dynamics) {
             (Some((drone, wind, rng)), Some(m)) if dt > 0.0 => {
@@ -1231,7 +1258,11 @@ impl MockAutopilot {
                 let h = dt / steps as f64;
                 let start = drone.position;
                 for _ in 0..steps {
-                    let air = wind.step(&m.wind, h, rng);
+                    let air = if self.random_held {
+                        [0.0; 3]
+                    } else {
+                        wind.step(&m.wind, h, rng)
+                    };
                     drone.step(target, air, &m.limits, h);
                 }
                 // The mean velocity over the tick, so that velocity * dt is where it went.
@@ -1245,7 +1276,16 @@ impl MockAutopilot {
             (Some(_), Some(_)) => [0.0; 3],
             _ => command,
         };
-        let mut flown = if self.landed() { [0.0; 3] } else { flown };
+        let mut flown = if self.landed() {
+            // On the ground the wind moves nothing: the motion model stays at rest where the
+            // vehicle stands, for the takeoff to start from.
+            if let Some((drone, _, _)) = self.motion.as_mut() {
+                *drone = Multicopter::hovering_at(ned_to_sim(self.position_ned));
+            }
+            [0.0; 3]
+        } else {
+            flown
+        };
         self.wander_estimate(dt);
         if dt > 0.0 {
             for (p, v) in self.position_ned.iter_mut().zip(flown) {
@@ -1338,6 +1378,37 @@ impl MockAutopilot {
         for stream in &mut self.streams {
             stream.next = now;
         }
+    }
+
+    /// Simulated time begins at `now` (s): every telemetry stream falls due and the clock goes
+    /// on from `now`, whatever the autopilot did while it listened on the wall clock before
+    /// (a pre-roll of varying length). Until [`release`](Self::release) the air is calm and
+    /// the position estimate exact: how many ticks the pre-flight takes (arming and takeoff
+    /// wait on other processes) then changes nothing that happens after it.
+    pub fn start_episode(&mut self, now: f64) {
+        self.restart_telemetry(now);
+        self.last_tick = Some(now);
+        self.random_held = true;
+        if let Some((drone, _, _)) = self.motion.as_mut() {
+            *drone = Multicopter::hovering_at(ned_to_sim(self.position_ned));
+        }
+        self.velocity_ned = [0.0; 3];
+        self.acceleration = [0.0; 3];
+    }
+
+    /// The episode starts (a lockstep simulator releases its vehicles): the wind's and the
+    /// estimate error's random streams start from their seeds, as the simulator's episode
+    /// starts its noise at step 0, so a seeded mission flies the same each run.
+    pub fn release(&mut self) {
+        let (motion, estimate) = Self::random_processes(&self.config, self.position_ned);
+        if let (Some((_, wind, rng)), Some((_, fresh_wind, fresh_rng))) =
+            (self.motion.as_mut(), motion)
+        {
+            *wind = fresh_wind;
+            *rng = fresh_rng;
+        }
+        self.estimate = estimate;
+        self.random_held = false;
     }
 
     /// The telemetry due at `now` from the current state: queued STATUSTEXTs, the HEARTBEAT

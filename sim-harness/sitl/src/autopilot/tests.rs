@@ -760,3 +760,58 @@ fn with_dynamics_the_reported_position_wanders_from_the_truth_by_the_estimate_er
     // Seeded: the same vehicle reports the same errors.
     assert_eq!(reported(0.3), errors);
 }
+
+/// A lockstep episode starts its randomness at the release: however long a vehicle hovered
+/// before it (the pre-flight's length depends on other processes), the gusts and estimate
+/// errors it meets afterwards are the same, and before it the air is calm and the estimate
+/// exact.
+#[test]
+fn the_wind_and_estimate_error_start_at_the_release_whatever_came_before() {
+    let config = AutopilotConfig {
+        dynamics: Some(Motion {
+            limits: DynamicsLimits::indoor(),
+            wind: WindConfig {
+                mean: [0.3, 0.0, 0.0],
+                gust_std: 0.2,
+                gust_time: 2.0,
+            },
+            wind_seed: 4,
+            estimate_std_m: 0.05,
+            estimate_time_s: 5.0,
+        }),
+        ..AutopilotConfig::px4(1)
+    };
+    let hover = [2.0, 3.0, -1.0];
+    // Flies `held` seconds after the episode's start, then 5 s after the release; returns the
+    // truth and the reported positions after the release.
+    let flight = |held: f64| {
+        let mut ap = MockAutopilot::new_flying(config.clone(), hover, 0.0);
+        ap.start_episode(0.0);
+        let mut t = 0.0;
+        while t < held - 1e-9 {
+            t += 0.1;
+            ap.fly(t);
+            ap.set_state(hover, [0.0; 3]);
+            // Calm and exact before the release: the vehicle stays put and reports the truth.
+            assert_eq!(ap.position_ned(), hover);
+            assert_eq!(ap.estimated_position(), hover);
+        }
+        ap.release();
+        let mut after = Vec::new();
+        for _ in 0..50 {
+            t += 0.1;
+            let v = ap.fly(t);
+            after.push((v, ap.estimated_position()));
+        }
+        after
+    };
+    let (short, long) = (flight(0.5), flight(3.7));
+    assert_eq!(short, long);
+    // And after the release the wind (east, NED y) does push the vehicle, and the estimate
+    // does wander.
+    assert!(short.iter().any(|(v, _)| v[1] > 0.02), "{short:?}");
+    assert!(
+        short.iter().any(|(_, p)| (p[2] - hover[2]).abs() > 0.01),
+        "{short:?}"
+    );
+}
