@@ -518,6 +518,17 @@ impl<P: OnboardPolicy> DaemonCore<P> {
         self.counters
     }
 
+    /// Whether the last tick steered on the world snapshot (flying, or held by a safety rule
+    /// that reads it): then which snapshot the next tick sees changes what it sends. Not
+    /// while idle, preparing, landing, or holding for a reason of the mission's (complete,
+    /// aborted, uplink stale).
+    pub fn steers_on_snapshots(&self) -> bool {
+        matches!(
+            self.status(),
+            Status::Flying(_) | Status::Holding(HoldReason::Safety(_))
+        )
+    }
+
     /// Lockstep: the snapshot stamped `now` counts as heard at `now`. The simulator sends it
     /// before the positions of that instant, but the two links' reader threads may deliver it
     /// just before or just after the position; without this its age (which the separation

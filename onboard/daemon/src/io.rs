@@ -527,7 +527,7 @@ const READ_TIMEOUT: Duration = Duration::from_millis(100);
 pub(crate) const LOCKSTEP_SNAPSHOT_WAIT: Duration = Duration::from_millis(20);
 
 /// Lockstep: longest wall-time wait for the snapshot of a position's instant while snapshots
-/// keep pace (the last one came in time): a loaded machine can delay the ground's process or
+/// keep pace (the last one came in time) and the daemon flies on them: a loaded machine can delay the ground's process or
 /// this reader thread past [`LOCKSTEP_SNAPSHOT_WAIT`], and a tick flown on the previous
 /// snapshot would make the mission differ from run to run. Under the simulator's patience
 /// (`SitlConfig::lockstep_patience`, 2 s) for a daemon that kept pace.
@@ -947,7 +947,7 @@ impl<P: OnboardPolicy> Daemon<P> {
     /// goes on with what there is after the wait.
     fn await_snapshot_of(&mut self, now: Millis) {
         let lockstep = matches!(self.clock, ClockMode::Simulator { lockstep: true });
-        let wait = if self.snapshots_keep_pace && lockstep {
+        let wait = if self.snapshots_keep_pace && lockstep && self.core.steers_on_snapshots() {
             LOCKSTEP_SNAPSHOT_PATIENCE
         } else {
             LOCKSTEP_SNAPSHOT_WAIT

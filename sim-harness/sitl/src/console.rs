@@ -166,6 +166,8 @@ pub struct FlightSettings {
     pub wind: String,
     /// Whether the daemons ran the separation rule.
     pub keep_apart: bool,
+    /// The distance they kept (3-D, m; `skyherd-onboard --separation-m`), with the rule.
+    pub keep_apart_m: Option<f64>,
 }
 
 /// One mission's outcome: what `result.json` holds.
