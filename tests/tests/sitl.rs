@@ -207,10 +207,11 @@ fn the_default_mission_flies_the_room_with_dynamics_and_keeps_the_drones_apart()
     }
 }
 
-/// The arena with PX4's Offboard response and the arena's 3 m/s wind with 1 m/s gusts: four
-/// drones drive 64 vehicles through the loop, kept apart. Seed 403 once never started: the
-/// episode waited for every drone to be at its takeoff altitude in the same tick, and a gust
-/// always had one 15 cm low; a takeoff now counts once reached. 165.7 s from take-off.
+/// The arena with PX4's Offboard response, the arena's 3 m/s wind with 1 m/s gusts and its
+/// GNSS-like estimate error (0.5 m horizontally, 0.1 m vertically): four drones drive 64
+/// vehicles through the loop, kept 4.71 m apart. Seed 403 once never started: the episode
+/// waited for every drone to be at its takeoff altitude in the same tick, and a gust always had
+/// one 15 cm low; a takeoff now counts once reached. 162.6 s from take-off, closest 8.5 m.
 #[test]
 fn in_the_gusty_arena_four_drones_take_off_and_drive_sixty_four_vehicles() {
     let run = fly_with(
@@ -233,6 +234,11 @@ fn in_the_gusty_arena_four_drones_take_off_and_drive_sixty_four_vehicles() {
     let r = &run.result;
     assert_eq!(r["flight"]["dynamics"], "px4", "{r}");
     assert_eq!(r["flight"]["wind"], "arena", "{r}");
+    let kept = r["flight"]["keep_apart_m"].as_f64().expect("a distance");
+    assert!(
+        (kept - (3.3 + 2.0 * 2f64.sqrt() * 0.5)).abs() < 1e-6,
+        "{kept}"
+    );
     assert!(r["flight_start_s"].is_number(), "the episode started: {r}");
     assert_eq!(r["success"], true, "{r}\n{}", run.stderr);
     assert_eq!(r["separation_breaches"], 0, "{r}");

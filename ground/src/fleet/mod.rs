@@ -204,6 +204,35 @@ impl std::fmt::Debug for GroundLink {
     }
 }
 
+/// The receive buffer a listening link asks for, bytes. A fleet link hears every vehicle and
+/// the sensor: a simulator's scan of 256 targets is 257 datagrams at once, which overflow
+/// Linux's default 208 KiB (a datagram costs about 768 bytes of buffer however small), and a
+/// lost end-of-scan stalls the lockstep. The kernel grants at most `net.core.rmem_max`.
+const RECEIVE_BUFFER_BYTES: libc::c_int = 4 << 20;
+
+/// Asks for [`RECEIVE_BUFFER_BYTES`] of receive buffer; best effort (a smaller grant, or a
+/// refusal, leaves the link as it was).
+#[cfg(unix)]
+fn enlarge_receive_buffer(socket: &UdpSocket) {
+    use std::os::fd::AsRawFd;
+    let size = RECEIVE_BUFFER_BYTES;
+    // SAFETY: setsockopt(2) on a socket this process owns, with a pointer to a c_int that
+    // outlives the call and its exact size; it writes no memory of ours.
+    #[allow(unsafe_code)]
+    let _ = unsafe {
+        libc::setsockopt(
+            socket.as_raw_fd(),
+            libc::SOL_SOCKET,
+            libc::SO_RCVBUF,
+            (&raw const size).cast(),
+            std::mem::size_of::<libc::c_int>() as libc::socklen_t,
+        )
+    };
+}
+
+#[cfg(not(unix))]
+fn enlarge_receive_buffer(_socket: &UdpSocket) {}
+
 impl GroundLink {
     /// Open a link from an address string (`udpin:0.0.0.0:14550`, `udpout:127.0.0.1:14551`,
     /// `tcpout:127.0.0.1:5760`, `serial:/dev/ttyUSB0:921600`).
@@ -212,11 +241,15 @@ impl GroundLink {
     /// [`LinkError::BadAddress`], or the I/O error of opening it.
     pub fn open(address: &str, config: LinkConfig) -> Result<Self, LinkError> {
         let transport = match address.parse::<Address>()? {
-            Address::UdpIn(addr) => Transport::Udp {
-                socket: UdpSocket::bind(addr)?,
-                fixed_peer: None,
-                peers: BTreeMap::new(),
-            },
+            Address::UdpIn(addr) => {
+                let socket = UdpSocket::bind(addr)?;
+                enlarge_receive_buffer(&socket);
+                Transport::Udp {
+                    socket,
+                    fixed_peer: None,
+                    peers: BTreeMap::new(),
+                }
+            }
             Address::UdpOut(addr) => {
                 let bind: SocketAddr = if addr.is_ipv4() {
                     ([0, 0, 0, 0], 0).into()

@@ -530,8 +530,8 @@ pub(crate) const LOCKSTEP_SNAPSHOT_WAIT: Duration = Duration::from_millis(20);
 /// keep pace (the last one came in time) and the daemon flies on them: a loaded machine can delay the ground's process or
 /// this reader thread past [`LOCKSTEP_SNAPSHOT_WAIT`], and a tick flown on the previous
 /// snapshot would make the mission differ from run to run. Under the simulator's patience
-/// (`SitlConfig::lockstep_patience`, 2 s) for a daemon that kept pace.
-pub(crate) const LOCKSTEP_SNAPSHOT_PATIENCE: Duration = Duration::from_secs(1);
+/// (`SitlConfig::lockstep_patience`, 400 ms) for a daemon that kept pace.
+pub(crate) const LOCKSTEP_SNAPSHOT_PATIENCE: Duration = Duration::from_millis(250);
 
 /// Whether a snapshot stamped `snapshot_ms` (the ground's clock) is older than the position
 /// of `now` (the autopilot's clock), both simulated time in lockstep. A millisecond of slack

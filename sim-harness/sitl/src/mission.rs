@@ -20,9 +20,9 @@
 //!    before any setpoint, is in lockstep too. The loop runs as fast as the processes allow and
 //!    never outruns them; the answer is flown in the next tick's step 1.
 //!
-//! Waits (steps 3 and 5) are patient ([`SitlConfig::lockstep_patience`], 2 s of wall time) for
+//! Waits (steps 3 and 5) are patient ([`SitlConfig::lockstep_patience`], 400 ms of wall time) for
 //! a process that answered its last tick, brief ([`SitlConfig::lockstep_timeout`], 50 ms) for
-//! one that did not (a dead daemon costs the mission 50 ms a tick, not 2 s) and on links that
+//! one that did not (a dead daemon costs the mission 50 ms a tick, not 400 ms) and on links that
 //! lose datagrams on purpose; a wait given up during the episode is a lockstep miss.
 //!
 //! Nothing depends on how long anything takes in wall time: the pre-roll only listens,
@@ -83,7 +83,9 @@ pub struct SitlConfig {
     /// How long to wait, wall time, for a daemon or ground station that answered its last
     /// tick in time: on a loaded machine a live process can take longer than
     /// `lockstep_timeout`, and going on without its answer would make the mission differ from
-    /// run to run.
+    /// run to run. A tick waits at most twice this (the ground, then the daemons), which must
+    /// stay under the ground's idle timeout (1 s as fast as possible): a ground that hears no
+    /// scan for that long takes the simulation for over.
     pub lockstep_patience: Duration,
     /// 0 = as fast as possible; 1 = real time; k = k times real time.
     pub speed: f64,
@@ -100,12 +102,16 @@ pub struct SitlConfig {
     pub dynamics: Option<DynamicsLimits>,
     /// The wind (with `dynamics` only).
     pub wind: WindConfig,
-    /// The autopilots' position-estimate error (with `dynamics` only): each axis of what they
-    /// report wanders from the truth as a Gauss-Markov process of this stationary standard
-    /// deviation (m) over [`ESTIMATE_TIME_S`]. Defaults: 0.03 m in a room (motion capture or
-    /// ultra-wideband); 0 in the arena, where a GNSS-like 0.5 m on every axis from the ground
-    /// up keeps the daemons' takeoff from finishing (`--estimate-noise-m`).
+    /// The autopilots' position-estimate error (with `dynamics` only): each horizontal axis of
+    /// what they report wanders from the truth as a Gauss-Markov process of this stationary
+    /// standard deviation (m) over [`ESTIMATE_TIME_S`], starting from none at the release.
+    /// Defaults: 0.03 m in a room (motion capture or ultra-wideband), 0.5 m in the arena
+    /// (GNSS) (`--estimate-noise-m`).
     pub estimate_std_m: f64,
+    /// The same on the vertical axis. Defaults: 0.03 m in a room, 0.1 m in the arena (an EKF's
+    /// height relative to takeoff leans on the barometer; a GNSS-like 0.5 m from the ground up
+    /// would fly the drones into the ground under the 0.5 m altitude floor).
+    pub estimate_vertical_std_m: f64,
     /// Two drones closer than this (3-D, m) during flight is a separation breach: 0.5 m in a
     /// room-sized arena (50 m or less across), 3 m otherwise.
     pub separation_m: f64,
@@ -171,8 +177,8 @@ pub const AIRBORNE_TOLERANCE_M: f64 = 0.15;
 
 impl SitlConfig {
     /// Defaults for a scenario: 0.1 s ticks and scans, sensor noise from the scenario's sensing
-    /// noise with 95 % detection and no false alarms, 50 ms lockstep wait (2 s for a process
-    /// that kept pace), as fast as
+    /// noise with 95 % detection and no false alarms, 50 ms lockstep wait (400 ms for a
+    /// process that kept pace), as fast as
     /// possible, the scenario's step limit as time limit, a ground that acknowledges scans.
     pub fn new(scenario: Scenario, seed: u64, ground: SocketAddr) -> Self {
         let sensor = SensorConfig::for_scenario(&scenario);
@@ -192,7 +198,7 @@ impl SitlConfig {
             faults: FaultConfig::default(),
             sensor,
             lockstep_timeout: Duration::from_millis(50),
-            lockstep_patience: Duration::from_secs(2),
+            lockstep_patience: Duration::from_millis(400),
             speed: 0.0,
             time_limit_s,
             lose_drone: None,
@@ -200,6 +206,7 @@ impl SitlConfig {
             dynamics: None,
             wind: WindConfig::CALM,
             estimate_std_m: 0.0,
+            estimate_vertical_std_m: 0.0,
             separation_m: 0.0,
             land_after_s: 10.0,
             kill_ground_at: None,
@@ -213,7 +220,11 @@ impl SitlConfig {
 
     fn with_default_separation(mut self) -> Self {
         self.separation_m = self.scenario.area.breach_distance_m();
-        self.estimate_std_m = if self.separation_m <= 1.0 { 0.03 } else { 0.0 };
+        (self.estimate_std_m, self.estimate_vertical_std_m) = if self.separation_m <= 1.0 {
+            (0.03, 0.03)
+        } else {
+            (0.5, 0.1)
+        };
         self
     }
 }
@@ -494,6 +505,7 @@ impl SitlWorld {
                 wind: config.wind,
                 wind_seed: config.seed.wrapping_add(5000 + i as u64),
                 estimate_std_m: config.estimate_std_m,
+                estimate_vertical_std_m: config.estimate_vertical_std_m,
                 estimate_time_s: ESTIMATE_TIME_S,
             });
             let options = NodeOptions {

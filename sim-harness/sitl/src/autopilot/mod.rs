@@ -131,8 +131,11 @@ pub struct Motion {
     /// Seed of the wind's gusts (one stream per vehicle); the estimate error draws from a
     /// stream of its own derived from it, so the gusts do not depend on it.
     pub wind_seed: u64,
-    /// Stationary standard deviation of the reported position's error per axis, m (0: exact).
+    /// Stationary standard deviation of the reported position's error on each horizontal
+    /// axis, m (0: exact).
     pub estimate_std_m: f64,
+    /// The same on the vertical axis, m (an EKF's height leans on the barometer, not GNSS).
+    pub estimate_vertical_std_m: f64,
     /// The error's correlation time, s.
     pub estimate_time_s: f64,
 }
@@ -358,6 +361,11 @@ pub struct MockAutopilot {
     random_held: bool,
 }
 
+/// A standard deviation as given, or 0 when it is not a usable one (negative, not finite).
+fn usable_std(std: f64) -> f64 {
+    if std.is_finite() { std.max(0.0) } else { 0.0 }
+}
+
 /// The motion model's vehicle, its wind and the wind's random stream.
 type MotionState = (Multicopter, Wind, ChaCha8Rng);
 /// The position estimate's error, its process's settings and its random stream.
@@ -422,13 +430,13 @@ impl MockAutopilot {
         let estimate = config.dynamics.as_ref().map(|m| {
             let mut rng = ChaCha8Rng::seed_from_u64(m.wind_seed ^ 0xE571_3A7E);
             // The same process as the gusts': a stationary start, then a step per tick.
+            // A unit process, scaled per axis in `estimated_position`.
             let process = WindConfig {
                 mean: [0.0; 3],
-                gust_std: if m.estimate_std_m.is_finite() {
-                    m.estimate_std_m.max(0.0)
-                } else {
-                    0.0
-                },
+                gust_std: f64::from(u8::from(
+                    usable_std(m.estimate_std_m) > 0.0
+                        || usable_std(m.estimate_vertical_std_m) > 0.0,
+                )),
                 gust_time: m.estimate_time_s,
             };
             (Wind::new(&process, &mut rng), process, rng)
@@ -1215,7 +1223,14 @@ impl MockAutopilot {
             .as_ref()
             .filter(|_| !self.random_held)
             .map_or([0.0; 3], |(error, process, _)| error.velocity(process));
-        std::array::from_fn(|k| self.position_ned[k] + e[k])
+        let std = self.config.dynamics.map_or([0.0; 2], |m| {
+            [
+                usable_std(m.estimate_std_m),
+                usable_std(m.estimate_vertical_std_m),
+            ]
+        });
+        let scale = [std[0], std[0], std[1]];
+        std::array::from_fn(|k| self.position_ned[k] + scale[k] * e[k])
     }
 
     fn land_speed(&self) -> f64 {
@@ -1400,12 +1415,18 @@ impl MockAutopilot {
     /// estimate error's random streams start from their seeds, as the simulator's episode
     /// starts its noise at step 0, so a seeded mission flies the same each run.
     pub fn release(&mut self) {
-        let (motion, estimate) = Self::random_processes(&self.config, self.position_ned);
+        let (motion, mut estimate) = Self::random_processes(&self.config, self.position_ned);
         if let (Some((_, wind, rng)), Some((_, fresh_wind, fresh_rng))) =
             (self.motion.as_mut(), motion)
         {
             *wind = fresh_wind;
             *rng = fresh_rng;
+        }
+        // The estimate is exact at the release (as an EKF's local frame starts where the
+        // vehicle is) and wanders to its full spread over its correlation time: a report does
+        // not jump by the error's whole size from one tick to the next.
+        if let Some((error, _, _)) = estimate.as_mut() {
+            *error = Wind::default();
         }
         self.estimate = estimate;
         self.random_held = false;

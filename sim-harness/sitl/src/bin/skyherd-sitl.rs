@@ -137,10 +137,12 @@ struct MissionArgs {
     /// `room` (0.05 m/s draughts); anything but calm needs a motion model.
     #[arg(long, value_enum, default_value_t = WindArg::Auto)]
     wind: WindArg,
-    /// With dynamics: the standard deviation of the autopilots' position-estimate error per
-    /// axis, m (a Gauss-Markov wander over 5 s) [default: 0.03 in a room, 0 in the arena].
-    #[arg(long)]
-    estimate_noise_m: Option<f64>,
+    /// With dynamics: the standard deviation of the autopilots' position-estimate error on
+    /// each horizontal axis and on the vertical one, m (a Gauss-Markov wander over 5 s from
+    /// none at the release): H,V, or one value for both [default: 0.03 in a room, 0.5,0.1 in
+    /// the arena].
+    #[arg(long, value_name = "H[,V]")]
+    estimate_noise_m: Option<String>,
     /// Give up this many simulated seconds after the drones start flying. A mission's abort
     /// limit is mission control's choice, not the scenario's training-episode step limit.
     #[arg(long, default_value_t = 300.0)]
@@ -587,14 +589,26 @@ impl MissionArgs {
         };
         config.dynamics = self.dynamics(scenario);
         config.wind = self.wind(scenario);
-        if let Some(std) = self.estimate_noise_m {
-            if !(std.is_finite() && (0.0..=10.0).contains(&std)) {
-                bail!("--estimate-noise-m must be 0 to 10 m, got {std}");
-            }
-            if config.dynamics.is_none() && std > 0.0 {
+        if let Some(spec) = &self.estimate_noise_m {
+            let parts: Vec<&str> = spec.split(',').collect();
+            let parsed: Vec<f64> = parts
+                .iter()
+                .map(|p| p.trim().parse::<f64>())
+                .collect::<Result<_, _>>()
+                .ok()
+                .filter(|v: &Vec<f64>| {
+                    matches!(v.len(), 1 | 2)
+                        && v.iter().all(|s| s.is_finite() && (0.0..=10.0).contains(s))
+                })
+                .with_context(|| {
+                    format!("--estimate-noise-m must be H or H,V with each 0 to 10 m, got {spec:?}")
+                })?;
+            let (horizontal, vertical) = (parsed[0], *parsed.last().unwrap_or(&parsed[0]));
+            if config.dynamics.is_none() && (horizontal > 0.0 || vertical > 0.0) {
                 bail!("--estimate-noise-m needs a motion model (--dynamics off has none)");
             }
-            config.estimate_std_m = std;
+            config.estimate_std_m = horizontal;
+            config.estimate_vertical_std_m = vertical;
         }
         if config.dynamics.is_none() && config.wind != WindConfig::CALM {
             bail!("--wind needs a motion model (--dynamics other than off): nothing else feels it");
