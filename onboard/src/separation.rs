@@ -78,7 +78,17 @@ pub struct SeparationConfig {
     /// deceleration of both drones against a fresh peer (each takes its half), of this one
     /// alone against a stale one: the gap the rule shares out shrinks by all of it first.
     pub braking: Option<Braking>,
+    /// The altitude band the flight rules hold the drone in after this rule, `[floor,
+    /// ceiling]` (z, m; `None`: no band). On (or within [`AT_BAND_EDGE_M`] of) its floor a
+    /// drone cannot take the downward part of a correction, nor the upward part at its
+    /// ceiling: the rule then takes that part horizontally, so the pair does not close by
+    /// what the band takes away.
+    pub altitude_band: Option<[f32; 2]>,
 }
+
+/// How near its floor or ceiling (m) the drone counts as on it, for
+/// [`SeparationConfig::altitude_band`].
+pub const AT_BAND_EDGE_M: f32 = 0.05;
 
 impl SeparationConfig {
     /// The paper's arena: 3 m apart, 2 s horizon, 5 m/s herders.
@@ -92,6 +102,7 @@ impl SeparationConfig {
             peer_speed_bound: 5.0,
             passes: 3,
             braking: None,
+            altitude_band: None,
         }
     }
 
@@ -106,6 +117,7 @@ impl SeparationConfig {
             peer_speed_bound: 0.5,
             passes: 3,
             braking: None,
+            altitude_band: None,
         }
     }
 
@@ -161,6 +173,16 @@ pub fn separate(
     for p in peers.iter().filter(usable) {
         nearest_m = nearest_m.min(norm(sub(p.position, own)));
     }
+    // What the altitude band leaves of a vertical velocity here.
+    let band = config
+        .altitude_band
+        .filter(|[lo, hi]| lo.is_finite() && hi.is_finite());
+    let no_descent = band.is_some_and(|[lo, _]| own[2] <= lo + AT_BAND_EDGE_M);
+    let no_climb = band.is_some_and(|[_, hi]| own[2] >= hi - AT_BAND_EDGE_M);
+    // The band will take that much of the request anyway; the half-spaces must hold without it.
+    if no_descent && v[2] < 0.0 || no_climb && v[2] > 0.0 {
+        v[2] = 0.0;
+    }
     let mut adjusted = false;
     for _ in 0..config.passes.max(1) {
         let mut changed = false;
@@ -172,6 +194,18 @@ pub fn separate(
                 let right = [n[1], -n[0], 0.0];
                 let right_norm = norm(right);
                 v = sub(v, scale(n, over));
+                // A vertical part the band would take away is made up horizontally
+                // (`n_xy / |n_xy|^2` moves `v . n` as `n` does).
+                if (no_descent && v[2] < 0.0 && n[2] > 0.0 || no_climb && v[2] > 0.0 && n[2] < 0.0)
+                    && right_norm > 1e-3
+                {
+                    let lost = v[2] * n[2];
+                    v[2] = 0.0;
+                    v = add(
+                        v,
+                        scale([n[0], n[1], 0.0], lost / (right_norm * right_norm)),
+                    );
+                }
                 if right_norm > 1e-6 {
                     v = add(v, scale(right, over / right_norm));
                     // The veer must not reopen this half-space (it is perpendicular to n only
@@ -374,6 +408,51 @@ mod tests {
             }
         }
         (min, pos)
+    }
+
+    /// A drone on the altitude floor with a peer closing on it from above and to the side:
+    /// its share of the correction points partly down, which the flight rules' band takes
+    /// away after the rule. Unaware of the band, what is left after that clamp breaks the
+    /// half-space (the pair closes faster than allowed); told of it, the rule flies no
+    /// descent and makes the vertical part up sideways, inside the same half-space.
+    #[test]
+    fn on_the_floor_the_rule_takes_its_share_sideways_when_it_knows_the_band() {
+        const FLOOR: f32 = 0.5;
+        let own = [0.0f32, 0.0, FLOOR];
+        let peer = Peer {
+            position: [0.4, 0.0, 0.8],
+            velocity: [0.0, 0.0, -0.4],
+            age_s: 0.0,
+        };
+        let own_velocity = [0.2f32, 0.0, 0.0];
+        let request = [0.3f32, 0.0, 0.0];
+        let config = SeparationConfig::room();
+        let (n, limit) = half_space(&config, own, own_velocity, &peer);
+        assert!(n[2] > 0.3, "the peer is above: {n:?}");
+        let clamped = |mut v: [f32; 3]| {
+            v[2] = v[2].max(0.0);
+            v
+        };
+        let unaware = separate(&config, own, own_velocity, request, &[peer]).velocity;
+        assert!(unaware[2] < -0.01, "{unaware:?}");
+        assert!(dot(clamped(unaware), n) > limit + 0.01, "{unaware:?}");
+        let banded = SeparationConfig {
+            altitude_band: Some([FLOOR, 2.5]),
+            ..config
+        };
+        let aware = separate(&banded, own, own_velocity, request, &[peer]).velocity;
+        assert!(aware[2] >= 0.0, "{aware:?}");
+        assert!(dot(aware, n) <= limit + 1e-4, "{aware:?}");
+        // Off the floor the band changes nothing.
+        let high = [0.0f32, 0.0, 1.2];
+        let high_peer = Peer {
+            position: [0.4, 0.0, 1.5],
+            ..peer
+        };
+        assert_eq!(
+            separate(&banded, high, own_velocity, request, &[high_peer]),
+            separate(&config, high, own_velocity, request, &[high_peer]),
+        );
     }
 
     #[test]

@@ -165,8 +165,8 @@ fn kept_apart_the_indoor_drones_never_breach_half_a_metre() {
 /// The mission's default, `skyherd-sitl` with no flight flags: the room's drones fly PX4's
 /// Offboard response (a 0.55 s lag) in the room's draughts, report their positions with a 3 cm
 /// estimate error, keep 0.63 m apart (0.5 m, 10 %, and twice the two drones' estimate errors),
-/// and fly mtddpg-room, the model tuned for them. Seed 0 succeeds in 40.6 s (29.1 s for
-/// mtddpg-v3 on instant vehicles), the drones never nearer than 0.77 m; result.json says how it
+/// and fly mtddpg-room, the model tuned for them. Seed 0 succeeds in 51.6 s (29.1 s for
+/// mtddpg-v3 on instant vehicles), the drones never nearer than 0.83 m; result.json says how it
 /// was flown. The draughts and the estimate error are seeded and start at the release, so a
 /// second run flies the same mission.
 #[test]
@@ -211,7 +211,7 @@ fn the_default_mission_flies_the_room_with_dynamics_and_keeps_the_drones_apart()
 /// GNSS-like estimate error (0.5 m horizontally, 0.1 m vertically): four drones drive 64
 /// vehicles through the loop, kept 4.71 m apart. Seed 403 once never started: the episode
 /// waited for every drone to be at its takeoff altitude in the same tick, and a gust always had
-/// one 15 cm low; a takeoff now counts once reached. 162.6 s from take-off, closest 8.5 m.
+/// one 15 cm low; a takeoff now counts once reached. 157.3 s from take-off, closest 9.0 m.
 #[test]
 fn in_the_gusty_arena_four_drones_take_off_and_drive_sixty_four_vehicles() {
     let run = fly_with(

@@ -470,7 +470,7 @@ impl SitlWorld {
                 .as_ref()
                 .filter(|d| d.indices.contains(&i))
             {
-                let port = UdpSocket::bind("127.0.0.1:0")?.local_addr()?.port();
+                let port = crate::launch::free_udp_port()?;
                 let options = ArduCopterOptions {
                     system_id: i as u8 + 1,
                     speedup: drones.speedup,
