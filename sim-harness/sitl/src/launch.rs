@@ -320,6 +320,34 @@ pub fn sibling(name: &str) -> io::Result<PathBuf> {
     Ok(path)
 }
 
+/// A UDP port on loopback that is free now, for another process to bind: below Linux's
+/// ephemeral range (`net.ipv4.ip_local_port_range`, 32768 up by default), where no socket
+/// bound to port 0 lands. The kernel's own pick (binding port 0 and letting go) is an
+/// ephemeral port, and with 16 daemons each opening ephemeral sockets of their own one of
+/// them sometimes took a daemon's uplink port first ("Address already in use").
+///
+/// # Errors
+/// When no port in the range could be bound.
+pub fn free_udp_port() -> io::Result<u16> {
+    use std::sync::atomic::{AtomicU32, Ordering};
+    const FIRST: u32 = 20_000;
+    const COUNT: u32 = 12_000;
+    static NEXT: AtomicU32 = AtomicU32::new(0);
+    // Start where this process's id points, so that concurrent missions (tests) spread out.
+    let start = std::process::id().wrapping_mul(2_654_435_761) % COUNT;
+    for _ in 0..COUNT {
+        let offset = (start + NEXT.fetch_add(1, Ordering::Relaxed)) % COUNT;
+        let port = u16::try_from(FIRST + offset).unwrap_or(u16::MAX);
+        if std::net::UdpSocket::bind(("127.0.0.1", port)).is_ok() {
+            return Ok(port);
+        }
+    }
+    Err(io::Error::new(
+        io::ErrorKind::AddrInUse,
+        "no free UDP port in 20000-31999 on loopback",
+    ))
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -356,32 +384,4 @@ mod tests {
         drop(a);
         assert!(!gone.exists(), "the keys outlived the mission");
     }
-}
-
-/// A UDP port on loopback that is free now, for another process to bind: below Linux's
-/// ephemeral range (`net.ipv4.ip_local_port_range`, 32768 up by default), where no socket
-/// bound to port 0 lands. The kernel's own pick (binding port 0 and letting go) is an
-/// ephemeral port, and with 16 daemons each opening ephemeral sockets of their own one of
-/// them sometimes took a daemon's uplink port first ("Address already in use").
-///
-/// # Errors
-/// When no port in the range could be bound.
-pub fn free_udp_port() -> io::Result<u16> {
-    use std::sync::atomic::{AtomicU32, Ordering};
-    const FIRST: u32 = 20_000;
-    const COUNT: u32 = 12_000;
-    static NEXT: AtomicU32 = AtomicU32::new(0);
-    // Start where this process's id points, so that concurrent missions (tests) spread out.
-    let start = std::process::id().wrapping_mul(2_654_435_761) % COUNT;
-    for _ in 0..COUNT {
-        let offset = (start + NEXT.fetch_add(1, Ordering::Relaxed)) % COUNT;
-        let port = u16::try_from(FIRST + offset).unwrap_or(u16::MAX);
-        if std::net::UdpSocket::bind(("127.0.0.1", port)).is_ok() {
-            return Ok(port);
-        }
-    }
-    Err(io::Error::new(
-        io::ErrorKind::AddrInUse,
-        "no free UDP port in 20000-31999 on loopback",
-    ))
 }
