@@ -98,7 +98,8 @@ pub struct ScanAssembler {
 }
 
 impl ScanAssembler {
-    /// Scans whose closing count did not match what arrived.
+    /// Scans whose closing count did not match what arrived, and scans dropped unfinished
+    /// (their closing message lost) when a newer one started.
     pub fn incomplete_scans(&self) -> u64 {
         self.incomplete_scans
     }
@@ -117,6 +118,10 @@ impl ScanAssembler {
         };
         let name = v.name.to_str().unwrap_or("");
         if self.time_usec != Some(v.time_usec) {
+            if self.time_usec.is_some() {
+                // The pending scan never closed: its end marker was lost.
+                self.incomplete_scans += 1;
+            }
             self.time_usec = Some(v.time_usec);
             self.detections.clear();
         }
@@ -185,6 +190,8 @@ mod tests {
         assert_eq!(scans.len(), 1);
         assert_eq!(scans[0].detections, vec![[5.0, 5.0]]);
         assert!(scans[0].complete);
+        // The lost one is counted.
+        assert_eq!(assembler.incomplete_scans(), 1);
     }
 
     #[test]

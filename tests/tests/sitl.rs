@@ -244,6 +244,36 @@ fn in_the_gusty_arena_four_drones_take_off_and_drive_sixty_four_vehicles() {
     assert_eq!(r["separation_breaches"], 0, "{r}");
 }
 
+/// Sixteen drones over 256 vehicles: every scan (257 datagrams at once, with the fleet's
+/// telemetry) reaches the ground whole. With the kernel's default receive buffer two scans of
+/// the first 20 s lost their end, the lockstep waited for them, and the mission changed from
+/// run to run; the ground's listening links now ask for more.
+#[test]
+fn sixteen_drones_over_256_vehicles_lose_no_scan() {
+    let run = fly_with(
+        "sixteen-drones",
+        "models/mtddpg-v3.skym",
+        &[],
+        &[
+            "--scenario",
+            "paper-drive",
+            "--herders",
+            "16",
+            "--targets",
+            "256",
+            "--seed",
+            "400",
+            "--time-limit",
+            "20",
+        ],
+    );
+    let r = &run.result;
+    assert!(r["flight_start_s"].is_number(), "the drones flew: {r}");
+    assert!(r["ground"]["scans"].as_u64().unwrap_or(0) > 200, "{r}");
+    assert_eq!(r["ground"]["incomplete_scans"], 0, "{r}");
+    assert_eq!(r["separation_breaches"], 0, "{r}");
+}
+
 /// The README's real-time mode: the same mission, paced to the wall clock (it once stopped
 /// after the first scan, the ground's one-second idle limit shorter than the pre-roll).
 #[test]
