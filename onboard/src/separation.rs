@@ -39,7 +39,7 @@
 //! assert!((out.velocity[1] + 3.25).abs() < 1e-4);
 //! ```
 
-use crate::safety::Braking;
+use crate::safety::{Braking, Limits};
 
 /// Another drone as this one knows it.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -118,6 +118,15 @@ impl SeparationConfig {
             passes: 3,
             braking: None,
             altitude_band: None,
+        }
+    }
+
+    /// The same rule for a drone the flight rules hold inside `limits`' altitude band
+    /// ([`SeparationConfig::altitude_band`]).
+    pub fn within(self, limits: &Limits) -> Self {
+        Self {
+            altitude_band: Some([limits.fence_min[2], limits.fence_max[2]]),
+            ..self
         }
     }
 

@@ -236,9 +236,9 @@ impl<A: Infer> Policy for ActorPolicy<A> {
         // Keep apart first; the flight rules still have the last word (as in the daemon).
         let request = match own {
             Some(position) if self.keep_apart && encoded.is_ok() => {
-                let config = SeparationConfig {
-                    altitude_band: limits.map(|l| [l.fence_min[2], l.fence_max[2]]),
-                    ..self.separation(world)
+                let config = match &limits {
+                    Some(l) => self.separation(world).within(l),
+                    None => self.separation(world),
                 };
                 self.peers.clear();
                 for (i, p) in world.herders.iter().enumerate() {

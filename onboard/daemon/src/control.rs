@@ -1031,10 +1031,7 @@ impl<P: OnboardPolicy> DaemonCore<P> {
                 let own_velocity = self.autopilot.velocity;
                 // The flight rules below hold it in the altitude band: the rule must not count
                 // on a descent through the floor.
-                let separation = SeparationConfig {
-                    altitude_band: Some([limits.fence_min[2], limits.fence_max[2]]),
-                    ..*separation
-                };
+                let separation = separation.within(&limits);
                 separate(&separation, own, own_velocity, request, &self.peers).velocity
             }
             _ => request,

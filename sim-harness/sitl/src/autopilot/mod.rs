@@ -433,10 +433,13 @@ impl MockAutopilot {
             // A unit process, scaled per axis in `estimated_position`.
             let process = WindConfig {
                 mean: [0.0; 3],
-                gust_std: f64::from(u8::from(
-                    usable_std(m.estimate_std_m) > 0.0
-                        || usable_std(m.estimate_vertical_std_m) > 0.0,
-                )),
+                gust_std: if usable_std(m.estimate_std_m) > 0.0
+                    || usable_std(m.estimate_vertical_std_m) > 0.0
+                {
+                    1.0
+                } else {
+                    0.0
+                },
                 gust_time: m.estimate_time_s,
             };
             (Wind::new(&process, &mut rng), process, rng)

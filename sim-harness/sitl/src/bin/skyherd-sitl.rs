@@ -320,6 +320,8 @@ fn main() -> Result<std::process::ExitCode> {
         dynamics,
         wind,
         keep_apart: cli.keeps_apart(),
+        // The rule keeps 10 % beyond the breach distance (it steers on the other drones'
+        // positions of the last snapshot, a tick old), and room for the estimate errors.
         keep_apart_m: cli.keeps_apart().then(|| keep_apart_m(sitl.config())),
     };
     say(format!(
@@ -344,11 +346,9 @@ fn main() -> Result<std::process::ExitCode> {
         keys: keys.path().to_path_buf(),
         out: cli.out.clone(),
         cut_uplink: cli.cut_uplink.clone(),
+        keep_apart_m: flight.keep_apart_m,
         // As fast as possible, scans come every few milliseconds and a silent second means the
         // simulation is over; in real time (or slower) the pre-roll alone can take a second.
-        // The rule keeps 10 % beyond the breach distance (it steers on the other drones'
-        // positions of the last snapshot, a tick old), and room for the estimate errors.
-        keep_apart_m: cli.keeps_apart().then(|| keep_apart_m(sitl.config())),
         ground_idle_timeout_s: if cli.speed > 0.0 {
             (3.0 / cli.speed).max(1.0)
         } else {
