@@ -75,6 +75,14 @@ pub enum EnvError {
     /// The scenario is invalid.
     #[error(transparent)]
     Scenario(#[from] ScenarioError),
+    /// A herder index past the world's herders.
+    #[error("no herder {herder}: the world has {herders}")]
+    NoSuchHerder {
+        /// The index asked for.
+        herder: usize,
+        /// Herders in the world.
+        herders: usize,
+    },
 }
 
 /// Per-episode bookkeeping beside the state.
@@ -115,6 +123,9 @@ pub struct Env {
     /// the wind's stream.
     drones: Vec<(Multicopter, Wind, [f64; 3])>,
     wind_rng: ChaCha8Rng,
+    /// With [`Env::keep_last_step`]: the true world as the last step found it (the velocities
+    /// it was advanced with stay in `noisy_actions` until the next step).
+    last_step_start: Option<World>,
 }
 
 /// Sub-step of the motion model inside one environment step, s (at most; the step is split
@@ -156,6 +167,7 @@ impl Env {
             info: EpisodeInfo::default(),
             drones: Vec::new(),
             wind_rng: stream_rng(seed, Stream::Wind),
+            last_step_start: None,
         };
         env.reset(seed);
         Ok(env)
@@ -193,6 +205,10 @@ impl Env {
             lower_bound_s: lower_bound_time(&self.world),
             ..EpisodeInfo::default()
         };
+        if let Some(start) = self.last_step_start.as_mut() {
+            // No step of this episode yet: nothing to replay.
+            start.clone_from(&self.world);
+        }
         self.refresh_observation();
         self.observation()
     }
@@ -223,6 +239,10 @@ impl Env {
             lower_bound_s: lower_bound_time(&self.world),
             ..EpisodeInfo::default()
         };
+        if let Some(start) = self.last_step_start.as_mut() {
+            // No step of this episode yet: nothing to replay.
+            start.clone_from(&self.world);
+        }
         self.refresh_observation();
         Ok(self.observation())
     }
@@ -293,6 +313,9 @@ impl Env {
             return Err(EnvError::EpisodeOver);
         }
         self.previous_herders.clone_from(&self.world.herders);
+        if let Some(start) = self.last_step_start.as_mut() {
+            start.clone_from(&self.world);
+        }
         self.noisy_actions.clear();
         self.noisy_actions.extend_from_slice(actions);
         actuate(
@@ -358,6 +381,52 @@ impl Env {
         self.info.success = success;
         self.refresh_observation();
         Ok(outcome)
+    }
+
+    /// Keep a copy of the true world as each step finds it, so that
+    /// [`Env::replay_last_step_without`] can replay that step (off by default: it costs a copy
+    /// of the world per step). Turning it on takes effect from the next step.
+    pub fn keep_last_step(&mut self, keep: bool) {
+        if !keep {
+            self.last_step_start = None;
+        } else if self.last_step_start.is_none() {
+            self.last_step_start = Some(self.world.clone());
+        }
+    }
+
+    /// The last step replayed as if herder `herder` had not been there: the true world as
+    /// that step found it, without that herder, advanced by the boids rules with the other
+    /// herders' velocities exactly as they were flown (actuation noise and dynamics included),
+    /// written into `out`. The targets' motion is deterministic given those, so `out` differs
+    /// from [`Env::world`] only by what that one herder did to the flock in that step: the
+    /// counterfactual of a difference reward (Wolpert and Tumer 2002).
+    ///
+    /// `Ok(false)` (and `out` untouched) when no step has been taken since the episode began
+    /// or [`Env::keep_last_step`] is off.
+    pub fn replay_last_step_without(
+        &self,
+        herder: usize,
+        out: &mut World,
+        scratch: &mut StepScratch,
+    ) -> Result<bool, EnvError> {
+        let Some(start) = self.last_step_start.as_ref() else {
+            return Ok(false);
+        };
+        if self.world.step == 0 || start.step + 1 != self.world.step {
+            return Ok(false);
+        }
+        if herder >= start.herders.len() {
+            return Err(EnvError::NoSuchHerder {
+                herder,
+                herders: start.herders.len(),
+            });
+        }
+        out.clone_from(start);
+        out.herders.remove(herder);
+        let mut flown = self.noisy_actions.clone();
+        flown.remove(herder);
+        advance(out, &flown, scratch)?;
+        Ok(true)
     }
 
     /// What the herders sense: the world with sensing noise (the true world when it is off).

@@ -234,3 +234,78 @@ fn indoor_preset_runs_and_keeps_start_and_goal_apart() {
     assert!(summary.steps >= 1 && summary.steps <= s.step_limit);
     let _ = NoiseConfig::NONE;
 }
+
+/// `replay_last_step_without(h)` is the step the world would have taken had herder `h` not been
+/// there: exactly a step of the world without it, and with actuation noise on, the other
+/// herders fly the velocities they were actually flown.
+#[test]
+fn the_last_step_replays_exactly_without_one_herder() {
+    use skyherd_sim::world::StepScratch;
+    let targets = vec![[100.0, 100.0], [104.0, 101.0], [101.0, 105.0]];
+    let mut scratch = StepScratch::default();
+
+    // Noise-free: the replay is bit for bit a step of an environment that never had herder 1.
+    let quiet = small(3, 2).without_noise();
+    let mut with = Env::new(quiet.clone()).unwrap();
+    with.keep_last_step(true);
+    let start = handmade(targets.clone(), vec![[90.0, 95.0, 2.0], [112.0, 92.0, 2.0]]);
+    with.reset_to(start.clone(), 0).unwrap();
+    let mut out = with.world().clone();
+    assert_eq!(
+        with.replay_last_step_without(0, &mut out, &mut scratch),
+        Ok(false),
+        "nothing to replay before the first step"
+    );
+    with.step(&[[1.0, 0.0, 0.0], [-1.0, 0.5, 0.0]]).unwrap();
+    let mut alone = start;
+    alone.herders.truncate(1);
+    let mut without = Env::new(quiet).unwrap();
+    without.reset_to(alone, 0).unwrap();
+    without.step(&[[1.0, 0.0, 0.0]]).unwrap();
+    assert!(with.replay_last_step_without(1, &mut out, &mut scratch).unwrap());
+    assert_eq!(&out, without.world());
+    assert_ne!(out.targets, with.world().targets, "herder 1 pushed the flock");
+    assert_eq!(
+        with.replay_last_step_without(2, &mut out, &mut scratch),
+        Err(EnvError::NoSuchHerder {
+            herder: 2,
+            herders: 2
+        })
+    );
+
+    // Actuation noise on: the others' flown (noisy) velocities are replayed, so a herder 400 m
+    // away moves the flock by millimetres, and without the herder beside the flock it barely moves.
+    let mut s = small(3, 2);
+    s.noise.sensing_std = 0.0;
+    s.noise.boids_param_rel_std = 0.0;
+    assert!(s.noise.actuation_std > 0.0);
+    let mut env = Env::new(s).unwrap();
+    env.keep_last_step(true);
+    env.reset_to(
+        handmade(targets, vec![[90.0, 95.0, 2.0], [400.0, 400.0, 2.0]]),
+        3,
+    )
+    .unwrap();
+    for _ in 0..3 {
+        env.step(&[[2.0, 1.0, 0.0], [-3.0, 0.0, 0.0]]).unwrap();
+    }
+    assert!(env.replay_last_step_without(1, &mut out, &mut scratch).unwrap());
+    assert_eq!(out.herders, env.world().herders[..1]);
+    for (a, b) in out.targets.iter().zip(&env.world().targets) {
+        assert!((a[0] - b[0]).abs() < 1e-2 && (a[1] - b[1]).abs() < 1e-2);
+    }
+    assert!(env.replay_last_step_without(0, &mut out, &mut scratch).unwrap());
+    let speed = |w: &World| {
+        w.target_velocities
+            .iter()
+            .map(|v| v[0].hypot(v[1]))
+            .sum::<f64>()
+    };
+    assert!(speed(&out) < 0.5 * speed(env.world()));
+    env.reset(4);
+    assert_eq!(
+        env.replay_last_step_without(0, &mut out, &mut scratch),
+        Ok(false),
+        "a reset leaves nothing to replay"
+    );
+}

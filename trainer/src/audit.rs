@@ -125,13 +125,13 @@ fn episode(config: &TrainConfig, draw: Draw, candidate: &Candidate, seed: u64) -
     let mut policy = candidate.policy();
     env.reset(seed);
     policy.reset(env.observation(), seed);
-    reward.start(env.world());
+    reward.start(&mut env);
     let (mut velocities, mut rewards) = (Vec::new(), Vec::new());
     let (mut total, mut discount) = (0.0, 1.0);
     loop {
         act_all(policy.as_mut(), env.observation(), &mut velocities);
         let out = env.step(&velocities).expect("one action per herder");
-        reward.step(&out, env.world(), &velocities, &mut rewards);
+        reward.step(&out, &env, &velocities, &mut rewards);
         total += discount * f64::from(rewards[0]);
         discount *= gamma;
         if out.terminated || out.truncated {

@@ -31,7 +31,8 @@
 //! optimises.
 
 use serde::{Deserialize, Serialize};
-use skyherd_sim::{Scenario, StepOutcome, World};
+use skyherd_sim::world::StepScratch;
+use skyherd_sim::{Env, Scenario, StepOutcome, World};
 
 use crate::config::RewardConfig;
 
@@ -70,6 +71,11 @@ pub struct AuditedReward {
     /// Leaving the arena costs this many horizons `1 / (1 - gamma)` of time cost, once: more
     /// than hovering forever when it is above 1.
     pub leave_penalty_horizons: f64,
+    /// Weight of each herder's own difference credit ([`difference_credits`]): the progress
+    /// the flock made this step because that herder was there, `Phi(s') - Phi(s' without h)`.
+    /// Added to the team's terms, so a herder pushing the flock the wrong way is told so even
+    /// when the others' pushes outweigh it. 0: off.
+    pub credit: f64,
 }
 
 impl Default for AuditedReward {
@@ -82,6 +88,7 @@ impl Default for AuditedReward {
             approach: 0.0,
             success_bonus: 10.0,
             leave_penalty_horizons: 2.0,
+            credit: 0.0,
         }
     }
 }
@@ -140,6 +147,38 @@ pub fn approach_potential(world: &World, h: usize) -> f64 {
     }
 }
 
+/// Reusable buffers for [`difference_credits`].
+#[derive(Clone, Debug, Default)]
+pub struct CreditScratch {
+    world: Option<World>,
+    step: StepScratch,
+}
+
+/// Each herder's difference credit for the step `env` last took, into `out` (one per herder):
+/// `Phi(s') - Phi(s'_-h)`, where `s'_-h` is that step replayed without herder `h`
+/// ([`Env::replay_last_step_without`]). It is what herder `h` itself added to the flock's
+/// progress towards the goal this step (in goal radii, averaged over the targets): positive
+/// behind the flock, negative on the goal's side of it, zero far from it. The team's progress
+/// is shared by every herder alike, so a herder can only read its own part from the team's
+/// reward through the noise of the others' actions; this credit gives it that part directly
+/// (the difference reward of Wolpert and Tumer 2002, with the simulator as the counterfactual).
+///
+/// All zeros when `env` does not keep its last step or has taken none this episode.
+pub fn difference_credits(env: &Env, scratch: &mut CreditScratch, out: &mut Vec<f64>) {
+    let after = env.world();
+    let actual = potential(after);
+    let m = after.herders.len();
+    out.clear();
+    out.resize(m, 0.0);
+    let world = scratch.world.get_or_insert_with(|| after.clone());
+    for (h, credit) in out.iter_mut().enumerate() {
+        // Only an index past the herders could fail, and `h` is not one.
+        if let Ok(true) = env.replay_last_step_without(h, world, &mut scratch.step) {
+            *credit = actual - potential(world);
+        }
+    }
+}
+
 /// The per-step cost of idling and flying at full speed, `k0 (k3 |r3| N + s k4 v_max M)` with
 /// `s` the flight scale: the natural unit of an episode's paper rewards.
 pub(crate) fn step_cost(s: &Scenario, flight_scale: f64) -> f64 {
@@ -161,6 +200,8 @@ pub struct LearnerReward {
     potential: f64,
     approach: Vec<f64>,
     weights: AuditedReward,
+    credits: Vec<f64>,
+    credit_scratch: CreditScratch,
 }
 
 impl LearnerReward {
@@ -174,26 +215,39 @@ impl LearnerReward {
             potential: 0.0,
             approach: Vec::new(),
             weights: config.audited_for(scenario.task).clone(),
+            credits: Vec::new(),
+            credit_scratch: CreditScratch::default(),
         }
     }
 
-    /// A new episode begins in `world`.
-    pub fn start(&mut self, world: &World) {
+    /// Whether this reward replays each step without each herder (the difference credit):
+    /// [`LearnerReward::start`] then asks `env` to keep its last step.
+    pub fn wants_credit(&self) -> bool {
+        self.config.kind == RewardKind::Audited && self.weights.credit != 0.0
+    }
+
+    /// A new episode begins in `env` (after its reset).
+    pub fn start(&mut self, env: &mut Env) {
+        if self.wants_credit() {
+            env.keep_last_step(true);
+        }
+        let world = env.world();
         self.potential = potential(world);
         self.approach = (0..world.herders.len())
             .map(|h| approach_potential(world, h))
             .collect();
     }
 
-    /// The reward of each herder for the step that led to `after` with the herders'
+    /// The reward of each herder for the step `env` just took (`outcome`) with the herders'
     /// commanded `velocities` (m/s), written into `out` (resized to M).
     pub fn step(
         &mut self,
         outcome: &StepOutcome,
-        after: &World,
+        env: &Env,
         velocities: &[[f64; 3]],
         out: &mut Vec<f32>,
     ) {
+        let after = env.world();
         out.clear();
         match self.config.kind {
             RewardKind::Paper => {
@@ -222,9 +276,17 @@ impl LearnerReward {
                 let gamma = self.gamma;
                 let terminated = outcome.terminated;
                 self.approach.resize(velocities.len(), 0.0);
+                if a.credit != 0.0 {
+                    difference_credits(env, &mut self.credit_scratch, &mut self.credits);
+                } else {
+                    self.credits.clear();
+                }
+                self.credits.resize(velocities.len(), 0.0);
+                let credits = &self.credits;
                 out.extend(velocities.iter().enumerate().map(|(h, v)| {
                     let speed = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
-                    let mut r = team - a.flight_cost * speed / self.max_speed;
+                    let mut r = team - a.flight_cost * speed / self.max_speed
+                        + a.credit * credits[h];
                     if a.approach != 0.0 {
                         let next = if terminated {
                             0.0
@@ -266,6 +328,7 @@ mod tests {
                 approach: 0.0,
                 success_bonus: 0.0,
                 leave_penalty_horizons: 0.0,
+                credit: 0.0,
             },
             ..RewardConfig::default()
         }
@@ -277,14 +340,14 @@ mod tests {
         let mut env = Env::new(scenario.clone()).unwrap();
         let mut reward = LearnerReward::new(config, gamma, &scenario);
         env.reset(5);
-        reward.start(env.world());
+        reward.start(&mut env);
         let first = potential(env.world());
         let mut rewards = Vec::new();
         let mut per_herder = Vec::new();
         loop {
             let velocities = vec![velocity; env.world().herders.len()];
             let out = env.step(&velocities).unwrap();
-            reward.step(&out, env.world(), &velocities, &mut per_herder);
+            reward.step(&out, &env, &velocities, &mut per_herder);
             rewards.push(per_herder[0]);
             if out.terminated || out.truncated {
                 let last = if out.terminated {
@@ -325,14 +388,14 @@ mod tests {
             let mut env = Env::new(scenario.clone()).unwrap();
             let mut reward = LearnerReward::new(&config, 0.97, &scenario);
             env.reset(5);
-            reward.start(env.world());
+            reward.start(&mut env);
             let first = potential(env.world());
             let mut total = 0.0;
             let mut r = Vec::new();
             loop {
                 let velocities = vec![velocity; env.world().herders.len()];
                 let out = env.step(&velocities).unwrap();
-                reward.step(&out, env.world(), &velocities, &mut r);
+                reward.step(&out, &env, &velocities, &mut r);
                 total += f64::from(r[0]);
                 if out.terminated || out.truncated {
                     break;
@@ -354,7 +417,7 @@ mod tests {
         let mut env = Env::new(scenario.clone()).unwrap();
         let mut reward = LearnerReward::new(&config, gamma, &scenario);
         env.reset(5);
-        reward.start(env.world());
+        reward.start(&mut env);
         let first: Vec<f64> = (0..2).map(|h| approach_potential(env.world(), h)).collect();
         // Herder 0 flies at the nearest target, herder 1 away from it.
         let mut sums = [0.0_f64; 2];
@@ -370,7 +433,7 @@ mod tests {
             };
             let velocities = vec![towards(0, 1.0), towards(1, -1.0)];
             let out = env.step(&velocities).unwrap();
-            reward.step(&out, env.world(), &velocities, &mut r);
+            reward.step(&out, &env, &velocities, &mut r);
             for h in 0..2 {
                 sums[h] += gamma.powi(t) * f64::from(r[h]);
             }
@@ -403,11 +466,11 @@ mod tests {
             let mut env = Env::new(s.clone()).unwrap();
             let mut reward = LearnerReward::new(&config, 0.99, &s);
             env.reset(1);
-            reward.start(env.world());
+            reward.start(&mut env);
             let velocities = [[v_max, 0.0, 0.0], [0.0; 3]];
             let out = env.step(&velocities).unwrap();
             let mut r = Vec::new();
-            reward.step(&out, env.world(), &velocities, &mut r);
+            reward.step(&out, &env, &velocities, &mut r);
             assert!((f64::from(r[0]) - expected).abs() < 1e-6, "{task:?}: {r:?}");
         }
     }
@@ -418,12 +481,12 @@ mod tests {
         let mut env = Env::new(scenario.clone()).unwrap();
         let mut reward = LearnerReward::new(&audited(0.0, 0.5), 0.99, &scenario);
         env.reset(1);
-        reward.start(env.world());
+        reward.start(&mut env);
         let v_max = scenario.limits.herder;
         let velocities = [[v_max, 0.0, 0.0], [0.0; 3]];
         let out = env.step(&velocities).unwrap();
         let mut r = Vec::new();
-        reward.step(&out, env.world(), &velocities, &mut r);
+        reward.step(&out, &env, &velocities, &mut r);
         assert!((f64::from(r[0]) + 0.5).abs() < 1e-6, "{r:?}");
         assert_eq!(r[1], 0.0);
     }
@@ -441,14 +504,14 @@ mod tests {
         let mut env = Env::new(scenario.clone()).unwrap();
         let mut reward = LearnerReward::new(&config, gamma, &scenario);
         env.reset(2);
-        reward.start(env.world());
+        reward.start(&mut env);
         // Fly herder 0 straight out of the arena at full speed.
         let mut r = Vec::new();
         let mut total = 0.0;
         for t in 0..400 {
             let velocities = vec![[-5.0, -5.0, 0.0], [0.0; 3]];
             let out = env.step(&velocities).unwrap();
-            reward.step(&out, env.world(), &velocities, &mut r);
+            reward.step(&out, &env, &velocities, &mut r);
             total += gamma.powi(t) * f64::from(r[1]);
             if out.left_area {
                 assert!(out.terminated);
@@ -469,13 +532,67 @@ mod tests {
         let mut env = Env::new(scenario.clone()).unwrap();
         let mut reward = LearnerReward::new(&config, 0.99, &scenario);
         env.reset(3);
-        reward.start(env.world());
+        reward.start(&mut env);
         let velocities = [[1.0, 0.0, 0.0], [0.0; 3]];
         let out = env.step(&velocities).unwrap();
         let mut r = Vec::new();
-        reward.step(&out, env.world(), &velocities, &mut r);
+        reward.step(&out, &env, &velocities, &mut r);
         let cost = step_cost(&scenario, config.flight_scale);
         let expected = (out.reward - 0.9 * out.terms.flight) / cost;
         assert_eq!(r, vec![expected as f32; 2]);
+    }
+
+    /// A world of 4 targets round (150, 150), the goal at (250, 250), and `herders`.
+    fn flock_world(herders: Vec<[f64; 3]>) -> (Env, Scenario) {
+        let mut s = scenario().without_noise();
+        s.targets = 4;
+        s.herders = HerderCount::Fixed(herders.len());
+        let mut env = Env::new(s.clone()).unwrap();
+        let mut world = env.world().clone();
+        world.goal.center = [250.0, 250.0];
+        world.targets = vec![[150.0, 150.0], [154.0, 151.0], [151.0, 154.0], [147.0, 149.0]];
+        world.target_velocities = vec![[0.0; 2]; 4];
+        world.herders = herders;
+        env.reset_to(world, 0).unwrap();
+        (env, s)
+    }
+
+    #[test]
+    fn the_difference_credit_goes_to_the_herder_that_pushed() {
+        // Herder 0 behind the flock (away from the goal), herder 1 far off in a corner.
+        let (mut env, s) = flock_world(vec![[138.0, 138.0, 2.0], [480.0, 20.0, 2.0]]);
+        let mut config = audited(0.0, 0.0);
+        config.audited.credit = 3.0;
+        let mut reward = LearnerReward::new(&config, 0.99, &s);
+        assert!(reward.wants_credit());
+        reward.start(&mut env);
+        let still = [[0.0; 3]; 2];
+        let out = env.step(&still).unwrap();
+        let mut credits = Vec::new();
+        difference_credits(&env, &mut CreditScratch::default(), &mut credits);
+        assert!(credits[0] > 1e-3, "pushing towards the goal earns: {credits:?}");
+        assert!(credits[1].abs() < 1e-2 * credits[0], "far off earns ~0: {credits:?}");
+        let mut r = Vec::new();
+        reward.step(&out, &env, &still, &mut r);
+        assert!((f64::from(r[0]) - 3.0 * credits[0]).abs() < 1e-6, "{r:?} {credits:?}");
+
+        // On the goal's side of the flock the same herder pushes it away: a debit, although
+        // the team's progress alone would not say whose.
+        let (mut env, _) = flock_world(vec![[162.0, 162.0, 2.0], [480.0, 20.0, 2.0]]);
+        reward.start(&mut env);
+        let out = env.step(&still).unwrap();
+        reward.step(&out, &env, &still, &mut r);
+        assert!(r[0] < -1e-3 && r[1].abs() < 1e-2 * r[0].abs(), "{r:?}");
+
+        // Off, and before any step, there is no credit at all.
+        let (mut env, _) = flock_world(vec![[138.0, 138.0, 2.0], [480.0, 20.0, 2.0]]);
+        difference_credits(&env, &mut CreditScratch::default(), &mut credits);
+        assert_eq!(credits, vec![0.0, 0.0]);
+        let mut plain = LearnerReward::new(&audited(0.0, 0.0), 0.99, &s);
+        assert!(!plain.wants_credit());
+        plain.start(&mut env);
+        let out = env.step(&still).unwrap();
+        plain.step(&out, &env, &still, &mut r);
+        assert_eq!(r, vec![0.0, 0.0]);
     }
 }

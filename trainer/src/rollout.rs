@@ -320,7 +320,7 @@ impl Rollouts {
             );
             env.reset_to(world, seed)?;
         }
-        reward.start(env.world());
+        reward.start(&mut env);
         let herder = HerderState {
             nstep: NStep::new(self.ddpg.n_step, self.gamma as f32),
             ou: [0.0; ACTION_DIM],
@@ -380,7 +380,7 @@ impl Rollouts {
             let out = slot.env.step(&velocities)?;
             self.env_steps += 1;
             slot.reward
-                .step(&out, slot.env.world(), &velocities, &mut herder_rewards);
+                .step(&out, &slot.env, &velocities, &mut herder_rewards);
             slot.learner_return += herder_rewards.first().copied().map_or(0.0, f64::from);
             slot.paper_return += out.paper_reward;
             let before = std::mem::take(&mut slot.features);
@@ -769,7 +769,7 @@ mod tests {
         // Fly one herder out of the arena: the first step ends the episode.
         let mut env = Env::new(s.clone()).expect("scenario");
         env.reset(3);
-        reward.start(env.world());
+        reward.start(&mut env);
         let mut actions = vec![[0.0; 3]; 4];
         let mut rewards = Vec::new();
         let mut leave = 0.0;
@@ -778,7 +778,7 @@ mod tests {
             let h = env.world().herders[0];
             actions[0] = [if h[0] < 250.0 { -5.0 } else { 5.0 }, 0.0, 0.0];
             let out = env.step(&actions).expect("step");
-            reward.step(&out, env.world(), &actions, &mut rewards);
+            reward.step(&out, &env, &actions, &mut rewards);
             leave += discount * f64::from(rewards[0]);
             discount *= gamma;
             if out.terminated || out.truncated {
