@@ -262,9 +262,16 @@ fn the_last_step_replays_exactly_without_one_herder() {
     let mut without = Env::new(quiet).unwrap();
     without.reset_to(alone, 0).unwrap();
     without.step(&[[1.0, 0.0, 0.0]]).unwrap();
-    assert!(with.replay_last_step_without(1, &mut out, &mut scratch).unwrap());
+    assert!(
+        with.replay_last_step_without(1, &mut out, &mut scratch)
+            .unwrap()
+    );
     assert_eq!(&out, without.world());
-    assert_ne!(out.targets, with.world().targets, "herder 1 pushed the flock");
+    assert_ne!(
+        out.targets,
+        with.world().targets,
+        "herder 1 pushed the flock"
+    );
     assert_eq!(
         with.replay_last_step_without(2, &mut out, &mut scratch),
         Err(EnvError::NoSuchHerder {
@@ -289,12 +296,18 @@ fn the_last_step_replays_exactly_without_one_herder() {
     for _ in 0..3 {
         env.step(&[[2.0, 1.0, 0.0], [-3.0, 0.0, 0.0]]).unwrap();
     }
-    assert!(env.replay_last_step_without(1, &mut out, &mut scratch).unwrap());
+    assert!(
+        env.replay_last_step_without(1, &mut out, &mut scratch)
+            .unwrap()
+    );
     assert_eq!(out.herders, env.world().herders[..1]);
     for (a, b) in out.targets.iter().zip(&env.world().targets) {
         assert!((a[0] - b[0]).abs() < 1e-2 && (a[1] - b[1]).abs() < 1e-2);
     }
-    assert!(env.replay_last_step_without(0, &mut out, &mut scratch).unwrap());
+    assert!(
+        env.replay_last_step_without(0, &mut out, &mut scratch)
+            .unwrap()
+    );
     let speed = |w: &World| {
         w.target_velocities
             .iter()

@@ -285,8 +285,8 @@ impl LearnerReward {
                 let credits = &self.credits;
                 out.extend(velocities.iter().enumerate().map(|(h, v)| {
                     let speed = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
-                    let mut r = team - a.flight_cost * speed / self.max_speed
-                        + a.credit * credits[h];
+                    let mut r =
+                        team - a.flight_cost * speed / self.max_speed + a.credit * credits[h];
                     if a.approach != 0.0 {
                         let next = if terminated {
                             0.0
@@ -550,7 +550,12 @@ mod tests {
         let mut env = Env::new(s.clone()).unwrap();
         let mut world = env.world().clone();
         world.goal.center = [250.0, 250.0];
-        world.targets = vec![[150.0, 150.0], [154.0, 151.0], [151.0, 154.0], [147.0, 149.0]];
+        world.targets = vec![
+            [150.0, 150.0],
+            [154.0, 151.0],
+            [151.0, 154.0],
+            [147.0, 149.0],
+        ];
         world.target_velocities = vec![[0.0; 2]; 4];
         world.herders = herders;
         env.reset_to(world, 0).unwrap();
@@ -570,11 +575,20 @@ mod tests {
         let out = env.step(&still).unwrap();
         let mut credits = Vec::new();
         difference_credits(&env, &mut CreditScratch::default(), &mut credits);
-        assert!(credits[0] > 1e-3, "pushing towards the goal earns: {credits:?}");
-        assert!(credits[1].abs() < 1e-2 * credits[0], "far off earns ~0: {credits:?}");
+        assert!(
+            credits[0] > 1e-3,
+            "pushing towards the goal earns: {credits:?}"
+        );
+        assert!(
+            credits[1].abs() < 1e-2 * credits[0],
+            "far off earns ~0: {credits:?}"
+        );
         let mut r = Vec::new();
         reward.step(&out, &env, &still, &mut r);
-        assert!((f64::from(r[0]) - 3.0 * credits[0]).abs() < 1e-6, "{r:?} {credits:?}");
+        assert!(
+            (f64::from(r[0]) - 3.0 * credits[0]).abs() < 1e-6,
+            "{r:?} {credits:?}"
+        );
 
         // On the goal's side of the flock the same herder pushes it away: a debit, although
         // the team's progress alone would not say whose.

@@ -47,7 +47,11 @@ fn under_the_shipped_reward_hovering_beats_the_rules() {
 
 #[test]
 fn the_from_scratch_configs_pass_the_audit() {
-    for name in ["mtddpg-scratch.toml", "mtddpg-scratch2.toml", "mtddpg-scratch6.toml"] {
+    for name in [
+        "mtddpg-scratch.toml",
+        "mtddpg-scratch2.toml",
+        "mtddpg-scratch6.toml",
+    ] {
         passes(name);
     }
 }
