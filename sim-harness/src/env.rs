@@ -128,6 +128,13 @@ pub struct Env {
     last_step_start: Option<World>,
 }
 
+/// Reusable buffers for [`Env::replay_last_step_without`] (no allocation once warm).
+#[derive(Clone, Debug, Default)]
+pub struct ReplayScratch {
+    step: StepScratch,
+    flown: Vec<[f64; 3]>,
+}
+
 /// Sub-step of the motion model inside one environment step, s (at most; the step is split
 /// evenly): a 1 s paper step is far too coarse for a 0.3 s lag.
 const MOTION_STEP_S: f64 = 0.02;
@@ -205,10 +212,7 @@ impl Env {
             lower_bound_s: lower_bound_time(&self.world),
             ..EpisodeInfo::default()
         };
-        if let Some(start) = self.last_step_start.as_mut() {
-            // No step of this episode yet: nothing to replay.
-            start.clone_from(&self.world);
-        }
+        self.forget_last_step();
         self.refresh_observation();
         self.observation()
     }
@@ -239,10 +243,7 @@ impl Env {
             lower_bound_s: lower_bound_time(&self.world),
             ..EpisodeInfo::default()
         };
-        if let Some(start) = self.last_step_start.as_mut() {
-            // No step of this episode yet: nothing to replay.
-            start.clone_from(&self.world);
-        }
+        self.forget_last_step();
         self.refresh_observation();
         Ok(self.observation())
     }
@@ -383,6 +384,13 @@ impl Env {
         Ok(outcome)
     }
 
+    /// A new episode has taken no step yet: nothing to replay.
+    fn forget_last_step(&mut self) {
+        if let Some(start) = self.last_step_start.as_mut() {
+            start.clone_from(&self.world);
+        }
+    }
+
     /// Keep a copy of the true world as each step finds it, so that
     /// [`Env::replay_last_step_without`] can replay that step (off by default: it costs a copy
     /// of the world per step). Turning it on takes effect from the next step.
@@ -407,7 +415,7 @@ impl Env {
         &self,
         herder: usize,
         out: &mut World,
-        scratch: &mut StepScratch,
+        scratch: &mut ReplayScratch,
     ) -> Result<bool, EnvError> {
         let Some(start) = self.last_step_start.as_ref() else {
             return Ok(false);
@@ -423,9 +431,9 @@ impl Env {
         }
         out.clone_from(start);
         out.herders.remove(herder);
-        let mut flown = self.noisy_actions.clone();
-        flown.remove(herder);
-        advance(out, &flown, scratch)?;
+        scratch.flown.clone_from(&self.noisy_actions);
+        scratch.flown.remove(herder);
+        advance(out, &scratch.flown, &mut scratch.step)?;
         Ok(true)
     }
 

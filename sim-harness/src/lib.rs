@@ -14,7 +14,9 @@ pub mod task;
 pub mod trace;
 pub mod world;
 
-pub use env::{BatchEnv, Env, EnvError, EpisodeInfo, EpisodeSummary, StepOutcome, run_episode};
+pub use env::{
+    BatchEnv, Env, EnvError, EpisodeInfo, EpisodeSummary, ReplayScratch, StepOutcome, run_episode,
+};
 pub use policy::{Policy, PolicyFactory};
 pub use reward::{RewardCorrection, RewardParams, RewardTerms};
 pub use scenario::{HerderCount, HerderDynamics, Scenario, ScenarioError};

@@ -240,9 +240,8 @@ fn indoor_preset_runs_and_keeps_start_and_goal_apart() {
 /// herders fly the velocities they were actually flown.
 #[test]
 fn the_last_step_replays_exactly_without_one_herder() {
-    use skyherd_sim::world::StepScratch;
     let targets = vec![[100.0, 100.0], [104.0, 101.0], [101.0, 105.0]];
-    let mut scratch = StepScratch::default();
+    let mut scratch = skyherd_sim::ReplayScratch::default();
 
     // Noise-free: the replay is bit for bit a step of an environment that never had herder 1.
     let quiet = small(3, 2).without_noise();

@@ -31,8 +31,7 @@
 //! optimises.
 
 use serde::{Deserialize, Serialize};
-use skyherd_sim::world::StepScratch;
-use skyherd_sim::{Env, Scenario, StepOutcome, World};
+use skyherd_sim::{Env, ReplayScratch, Scenario, StepOutcome, World};
 
 use crate::config::RewardConfig;
 
@@ -151,7 +150,7 @@ pub fn approach_potential(world: &World, h: usize) -> f64 {
 #[derive(Clone, Debug, Default)]
 pub struct CreditScratch {
     world: Option<World>,
-    step: StepScratch,
+    replay: ReplayScratch,
 }
 
 /// Each herder's difference credit for the step `env` last took, into `out` (one per herder):
@@ -173,7 +172,7 @@ pub fn difference_credits(env: &Env, scratch: &mut CreditScratch, out: &mut Vec<
     let world = scratch.world.get_or_insert_with(|| after.clone());
     for (h, credit) in out.iter_mut().enumerate() {
         // Only an index past the herders could fail, and `h` is not one.
-        if let Ok(true) = env.replay_last_step_without(h, world, &mut scratch.step) {
+        if let Ok(true) = env.replay_last_step_without(h, world, &mut scratch.replay) {
             *credit = actual - potential(world);
         }
     }
