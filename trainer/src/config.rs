@@ -253,6 +253,9 @@ pub struct CurriculumConfig {
     /// Driving episodes whose goal is pulled towards the flock early in training (a reverse
     /// curriculum); off unless configured.
     pub driving_goal_distance: GoalDistanceCurriculum,
+    /// Driving episodes whose herders spawn pulled towards the flock early in training; off
+    /// unless configured.
+    pub driving_herder_distance: HerderDistanceCurriculum,
 }
 
 /// A reverse curriculum for driving: early driving episodes keep only a share of the paper
@@ -298,6 +301,45 @@ impl GoalDistanceCurriculum {
     }
 }
 
+/// A start-state curriculum for driving's herders: early driving episodes move each herder's
+/// spawn along the line towards the flock's centroid, keeping only a share of its distance (but
+/// never nearer than the start circle plus the layout's herder clearance, where the simulator's
+/// own spawn keeps them). The share is drawn per episode uniformly from `[floor, 1]`, the floor
+/// rising linearly from `first_share` at progress 0 to 1 at `full_at_progress`. Why: herders
+/// spawn anywhere in the arena, up to 400 m from the flock, so random flight rarely finishes a
+/// drive and a seed can meet no success at all; near the flock it meets them early. Both ends of
+/// the line are inside the arena, so the moved herder is too. Evaluation never uses it.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct HerderDistanceCurriculum {
+    /// The smallest share of each herder's distance to the flock, at progress 0 (1: off).
+    pub first_share: f64,
+    /// The progress (fraction of `training.env_steps`) from which every driving episode spawns
+    /// its herders where the layout put them.
+    pub full_at_progress: f64,
+}
+
+impl Default for HerderDistanceCurriculum {
+    fn default() -> Self {
+        Self {
+            first_share: 1.0,
+            full_at_progress: 0.0,
+        }
+    }
+}
+
+impl HerderDistanceCurriculum {
+    /// The smallest share drawn at `progress`.
+    pub fn floor_at(&self, progress: f64) -> f64 {
+        GoalDistanceCurriculum {
+            first_share: self.first_share,
+            full_at_progress: self.full_at_progress,
+            min_centre_distance_radii: 0.0,
+        }
+        .floor_at(progress)
+    }
+}
+
 impl Default for CurriculumConfig {
     fn default() -> Self {
         let stage = |from_progress: f64, targets: &[usize], herders: &[usize]| CurriculumStage {
@@ -308,6 +350,7 @@ impl Default for CurriculumConfig {
         CurriculumConfig {
             enabled: true,
             driving_goal_distance: GoalDistanceCurriculum::default(),
+            driving_herder_distance: HerderDistanceCurriculum::default(),
             stages: vec![
                 stage(0.0, &[2, 4, 8, 16], &[1, 2, 4]),
                 stage(0.25, &[4, 8, 16, 32, 64], &[1, 2, 4, 8, 0]),
@@ -832,6 +875,19 @@ impl TrainConfig {
             return bad(
                 "curriculum.driving_goal_distance.min_centre_distance_radii",
                 "must be in [0, 100]",
+            );
+        }
+        let h = &self.curriculum.driving_herder_distance;
+        if !(h.first_share >= 0.0 && h.first_share <= 1.0) {
+            return bad(
+                "curriculum.driving_herder_distance.first_share",
+                "must be in [0, 1]",
+            );
+        }
+        if !(h.full_at_progress >= 0.0 && h.full_at_progress <= 1.0) {
+            return bad(
+                "curriculum.driving_herder_distance.full_at_progress",
+                "must be in [0, 1]",
             );
         }
         let ev = &self.evolution;

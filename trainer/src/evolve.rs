@@ -145,6 +145,7 @@ pub fn scenario_of(s: &EvolutionScenario, step_limit: u64) -> Scenario {
         herders: s.herders,
         room: s.room,
         goal_distance_permille: 1000,
+        herder_distance_permille: 1000,
     };
     // The score reads only success and time, so the reward settings do not matter here.
     let mut scenario = training_scenario(draw, step_limit, true, &RewardConfig::default(), 0.99);

@@ -40,6 +40,9 @@ pub struct Draw {
     /// Driving: the share of the spawned start-goal distance kept, in thousandths (1000: the
     /// layout's own; see `GoalDistanceCurriculum`). An integer so that a draw stays `Eq`.
     pub goal_distance_permille: u16,
+    /// Driving: the share of each herder's spawned distance to the flock kept, in thousandths
+    /// (1000: where the layout put it; see `HerderDistanceCurriculum`).
+    pub herder_distance_permille: u16,
 }
 
 impl Draw {
@@ -51,6 +54,7 @@ impl Draw {
             herders,
             room: false,
             goal_distance_permille: 1000,
+            herder_distance_permille: 1000,
         }
     }
 }
@@ -141,6 +145,26 @@ pub fn pull_goal_at_least(
         share = share.max(floor);
     }
     w.goal.center = [c[0] + share * (g[0] - c[0]), c[1] + share * (g[1] - c[1])];
+    w
+}
+
+/// `world` with each herder moved along the line towards the flock's centroid, keeping `share`
+/// of its ground distance but staying at least `keep_out` metres from the centroid (a herder
+/// already nearer stays where it is). Altitude is kept; the herder stays inside the arena since
+/// both ends of the line are.
+pub fn pull_herders(world: &skyherd_sim::World, share: f64, keep_out: f64) -> skyherd_sim::World {
+    let mut w = world.clone();
+    let c = w.flock_centroid();
+    let share = share.clamp(0.0, 1.0);
+    for h in &mut w.herders {
+        let distance = (h[0] - c[0]).hypot(h[1] - c[1]);
+        if distance <= keep_out || distance <= 0.0 {
+            continue;
+        }
+        let kept = (share * distance).max(keep_out.max(0.0)) / distance;
+        h[0] = c[0] + kept * (h[0] - c[0]);
+        h[1] = c[1] + kept * (h[1] - c[1]);
+    }
     w
 }
 
@@ -312,12 +336,26 @@ impl Rollouts {
         // Training episode seeds stay below the held-out evaluation seeds (>= 1e9).
         let seed = self.rng.random_range(0..1_000_000_000u64);
         env.reset(seed);
-        if draw.task == Task::Driving && draw.goal_distance_permille < 1000 {
-            let world = pull_goal_at_least(
-                env.world(),
-                f64::from(draw.goal_distance_permille) / 1000.0,
-                self.min_centre_distance_radii,
-            );
+        let pulls_goal = draw.goal_distance_permille < 1000;
+        let pulls_herders = draw.herder_distance_permille < 1000;
+        if draw.task == Task::Driving && (pulls_goal || pulls_herders) {
+            let mut world = env.world().clone();
+            if pulls_goal {
+                world = pull_goal_at_least(
+                    &world,
+                    f64::from(draw.goal_distance_permille) / 1000.0,
+                    self.min_centre_distance_radii,
+                );
+            }
+            if pulls_herders {
+                let layout = &env.scenario().layout;
+                let keep_out = layout.start_radius + layout.herder_clearance;
+                world = pull_herders(
+                    &world,
+                    f64::from(draw.herder_distance_permille) / 1000.0,
+                    keep_out,
+                );
+            }
             env.reset_to(world, seed)?;
         }
         reward.start(&mut env);
@@ -652,12 +690,19 @@ fn draw_in(
     } else {
         1000
     };
+    let floor = config.curriculum.driving_herder_distance.floor_at(progress);
+    let herder_distance_permille = if task == Task::Driving && floor < 1.0 {
+        (rng.random_range(floor..=1.0) * 1000.0).round() as u16
+    } else {
+        1000
+    };
     Draw {
         task,
         targets,
         herders,
         room,
         goal_distance_permille,
+        herder_distance_permille,
     }
 }
 
@@ -751,6 +796,80 @@ mod tests {
                 .floor_at(0.0),
             1.0
         );
+    }
+
+    #[test]
+    fn the_herder_distance_curriculum_spawns_early_driving_herders_near_the_flock() {
+        let mut config = TrainConfig::default();
+        config.curriculum.driving_herder_distance = crate::config::HerderDistanceCurriculum {
+            first_share: 0.0,
+            full_at_progress: 0.5,
+        };
+        let mut rng = ChaCha8Rng::seed_from_u64(9);
+        let early: Vec<Draw> = (0..200)
+            .map(|_| draw_from_stage(&config, 0.0, &mut rng, Task::Driving))
+            .collect();
+        assert!(early.iter().any(|d| d.herder_distance_permille < 200));
+        assert!(early.iter().all(|d| d.goal_distance_permille == 1000));
+        let mid = draw_from_stage(&config, 0.25, &mut rng, Task::Driving);
+        assert!(mid.herder_distance_permille >= 500, "{mid:?}");
+        let late = draw_from_stage(&config, 0.5, &mut rng, Task::Driving);
+        assert_eq!(late.herder_distance_permille, 1000);
+        let collecting = draw_from_stage(&config, 0.0, &mut rng, Task::Collecting);
+        assert_eq!(collecting.herder_distance_permille, 1000);
+        assert_eq!(
+            TrainConfig::default()
+                .curriculum
+                .driving_herder_distance
+                .floor_at(0.0),
+            1.0
+        );
+        // Each herder moves towards the centroid, to the share of its distance, but no nearer
+        // than the keep-out radius; a herder inside it stays put.
+        let mut env = Env::new(Scenario::paper(Task::Driving)).expect("env");
+        env.reset(11);
+        let mut w = env.world().clone();
+        let c = w.flock_centroid();
+        w.herders[0] = [c[0] + 20.0, c[1], w.herders[0][2]];
+        let ground = |h: [f64; 3]| (h[0] - c[0]).hypot(h[1] - c[1]);
+        let keep_out = 60.0;
+        let pulled = pull_herders(&w, 0.25, keep_out);
+        assert_eq!(pulled.herders[0], w.herders[0]);
+        for (before, after) in w.herders.iter().zip(&pulled.herders).skip(1) {
+            let want = (0.25 * ground(*before)).max(keep_out);
+            assert!(
+                (ground(*after) - want).abs() < 1e-9,
+                "{before:?} -> {after:?}"
+            );
+            assert_eq!(after[2], before[2]);
+            // On the line from the centroid: the direction is kept.
+            let cross =
+                (before[0] - c[0]) * (after[1] - c[1]) - (before[1] - c[1]) * (after[0] - c[0]);
+            assert!(cross.abs() < 1e-6 * ground(*before) * ground(*after).max(1.0));
+        }
+        assert_eq!(pulled.targets, w.targets);
+        assert_eq!(pulled.goal, w.goal);
+        pulled
+            .validate()
+            .expect("pulled herders make a valid world");
+        // A slot built from such a draw starts with its herders pulled in.
+        let mut slots = Rollouts::new(1, &config, ChaCha8Rng::seed_from_u64(2), &mut |_, _| Draw {
+            herder_distance_permille: 0,
+            ..Draw::paper(Task::Driving, 8, 4)
+        })
+        .expect("rollouts");
+        let slot = &mut slots.slots[0];
+        let w = slot.env.world();
+        let layout = &slot.env.scenario().layout;
+        let near = layout.start_radius + layout.herder_clearance;
+        let c = w.flock_centroid();
+        for h in &w.herders {
+            let d = (h[0] - c[0]).hypot(h[1] - c[1]);
+            assert!(
+                d <= near + 1e-6,
+                "herder {d} m from the flock, keep-out {near} m"
+            );
+        }
     }
 
     #[test]
