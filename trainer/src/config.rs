@@ -970,6 +970,54 @@ mod tests {
     }
 
     #[test]
+    fn the_herder_distance_curriculum_reads_from_the_eighth_config_and_rejects_bad_values() {
+        let text = include_str!("../configs/mtddpg-scratch8.toml");
+        let file = TrainConfig::from_toml_str(text).expect("the eighth config parses");
+        let h = file.curriculum.driving_herder_distance;
+        assert_eq!(h.first_share, 0.0);
+        assert_eq!(h.full_at_progress, 0.3);
+        assert_eq!(h.floor_at(0.15), 0.5);
+        assert_eq!(h.floor_at(0.3), 1.0);
+        assert_eq!(
+            file.curriculum
+                .driving_goal_distance
+                .min_centre_distance_radii,
+            2.5
+        );
+        for (from, to) in [
+            ("first_share = 0.0 ", "first_share = -0.5 "),
+            ("first_share = 0.0 ", "first_share = 1.5 "),
+        ] {
+            let e = TrainConfig::from_toml_str(&text.replace(from, to))
+                .unwrap_err()
+                .to_string();
+            assert!(
+                e.contains("curriculum.driving_herder_distance.first_share"),
+                "{e}"
+            );
+        }
+        let section = text
+            .find("[curriculum.driving_herder_distance]")
+            .expect("the section");
+        let (before, after) = text.split_at(section);
+        let late = after.replacen("full_at_progress = 0.3", "full_at_progress = 2.0", 1);
+        let e = TrainConfig::from_toml_str(&format!("{before}{late}"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("curriculum.driving_herder_distance.full_at_progress"),
+            "{e}"
+        );
+        let e = TrainConfig::from_toml_str(&text.replace(
+            "[curriculum.driving_herder_distance]\n",
+            "[curriculum.driving_herder_distance]\nspawn_share = 0.5\n",
+        ))
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("spawn_share"), "{e}");
+    }
+
+    #[test]
     fn teachers_are_picked_by_task_and_flock() {
         let rule = |task, herders_at_least, targets_at_most| TeacherRule {
             task,
