@@ -58,6 +58,16 @@ pub struct Progress {
     pub best_success: f64,
     /// Best evaluation so far: mean time of successful episodes over the lower bound.
     pub best_time_ratio: f64,
+    /// Stalled-task resets done, per task (`Task::index`); older checkpoints read as none.
+    #[serde(default)]
+    pub task_resets: [u32; 2],
+    /// Env steps of the DDPG phase at each task's last reset (0: never reset): where its
+    /// curriculum and its patience count from.
+    #[serde(default)]
+    pub task_reset_env_steps: [u64; 2],
+    /// Each task's best mean held-out success since its last reset.
+    #[serde(default)]
+    pub task_best_since_reset: [f64; 2],
 }
 
 /// Everything a checkpoint holds.
@@ -469,6 +479,9 @@ mod tests {
             wall_time_s: 12.5,
             best_success: 0.75,
             best_time_ratio: 3.25,
+            task_resets: [1, 0],
+            task_reset_env_steps: [600, 0],
+            task_best_since_reset: [0.125, 0.5],
         };
         let original = Checkpoint {
             agent,
@@ -542,5 +555,15 @@ mod tests {
             .collect();
         assert!(keys.is_sorted(), "metadata keys in order: {keys:?}");
         assert!(from_bytes(&first).is_ok());
+    }
+
+    #[test]
+    fn progress_from_before_task_resets_reads_as_none() {
+        let old = "env_steps = 500\nepisodes = 3\nwarm_start_done = false\nwall_time_s = 1.5\n\
+                   best_success = 0.25\nbest_time_ratio = 4.0\n";
+        let p: Progress = toml::from_str(old).expect("an older checkpoint's progress");
+        assert_eq!(p.env_steps, 500);
+        assert_eq!(p.task_resets, [0, 0]);
+        assert_eq!(p.task_reset_env_steps, [0, 0]);
     }
 }

@@ -630,6 +630,17 @@ pub struct LoopConfig {
     pub restart_trial_env_steps: u64,
     /// How the restart candidates are ranked at the end of their trials.
     pub restart_score: RestartScore,
+    /// Stalled-task resets: a task whose training-time evaluation has not reached
+    /// `task_reset_below` mean success within this many of its own env steps (since the run
+    /// began or since its last reset) is started over (`ddpg::Agent::reset_task`: its own
+    /// layers of actor and critics drawn afresh, its curriculum from the start); the shared
+    /// layers, the other task and the replay stay. Needs `eval.every_task_env_steps`. 0: off.
+    pub task_reset_after_task_env_steps: u64,
+    /// The mean held-out success (over the task's evaluation scenarios) a task must have
+    /// reached, at some evaluation since its last reset, not to be reset.
+    pub task_reset_below: f64,
+    /// Resets per task at most.
+    pub task_resets_max: u32,
 }
 
 /// How restart candidates are ranked ([`LoopConfig::restart_candidates`]).
@@ -694,6 +705,9 @@ impl Default for LoopConfig {
             restart_candidates: 1,
             restart_trial_env_steps: 0,
             restart_score: RestartScore::Mean,
+            task_reset_after_task_env_steps: 0,
+            task_reset_below: 0.25,
+            task_resets_max: 2,
         }
     }
 }
@@ -858,6 +872,26 @@ impl TrainConfig {
                 "must be above 0, and all the candidates' trials below training.env_steps",
             );
         }
+        if t.task_reset_after_task_env_steps > 0 {
+            if self.eval.every_task_env_steps == 0 {
+                return bad(
+                    "training.task_reset_after_task_env_steps",
+                    "needs eval.every_task_env_steps above 0 (a reset is decided at an evaluation)",
+                );
+            }
+            if t.task_reset_after_task_env_steps < self.eval.every_task_env_steps {
+                return bad(
+                    "training.task_reset_after_task_env_steps",
+                    "must be at least eval.every_task_env_steps",
+                );
+            }
+            if !(t.task_reset_below > 0.0 && t.task_reset_below <= 1.0) {
+                return bad("training.task_reset_below", "must be in (0, 1]");
+            }
+            if !(1..=8).contains(&t.task_resets_max) {
+                return bad("training.task_resets_max", "must be 1 to 8");
+            }
+        }
         let g = &self.curriculum.driving_goal_distance;
         if !(g.first_share > 0.0 && g.first_share <= 1.0) {
             return bad(
@@ -967,6 +1001,58 @@ mod tests {
         let bad = text.replace("encoder_version = 3", "encoder_version = 2");
         let e = TrainConfig::from_toml_str(&bad).unwrap_err().to_string();
         assert!(e.contains("encoder_version"), "{e}");
+    }
+
+    #[test]
+    fn stalled_task_resets_read_from_the_tenth_config_and_reject_bad_values() {
+        let text = include_str!("../configs/mtddpg-scratch10.toml");
+        let file = TrainConfig::from_toml_str(text).expect("the tenth config parses");
+        let t = &file.training;
+        assert_eq!(t.task_reset_after_task_env_steps, 75_000);
+        assert_eq!(t.task_reset_below, 0.25);
+        assert_eq!(t.task_resets_max, 3);
+        // Everything else is the eighth config's.
+        let eighth = TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch8.toml"))
+            .expect("the eighth config parses");
+        let mut same = file.clone();
+        same.output_dir = eighth.output_dir.clone();
+        same.training.task_reset_after_task_env_steps = 0;
+        same.training.task_reset_below = eighth.training.task_reset_below;
+        same.training.task_resets_max = eighth.training.task_resets_max;
+        assert_eq!(same, eighth);
+        for (from, to, key) in [
+            (
+                "task_reset_below = 0.25 ",
+                "task_reset_below = 0.0 ",
+                "training.task_reset_below",
+            ),
+            (
+                "task_reset_below = 0.25 ",
+                "task_reset_below = 1.5 ",
+                "training.task_reset_below",
+            ),
+            (
+                "task_resets_max = 3",
+                "task_resets_max = 0",
+                "training.task_resets_max",
+            ),
+            (
+                "task_reset_after_task_env_steps = 75_000 ",
+                "task_reset_after_task_env_steps = 10_000 ",
+                "training.task_reset_after_task_env_steps",
+            ),
+            (
+                "every_task_env_steps = 25_000 ",
+                "every_task_env_steps = 0 ",
+                "training.task_reset_after_task_env_steps",
+            ),
+        ] {
+            assert!(text.contains(from), "{from}");
+            let e = TrainConfig::from_toml_str(&text.replace(from, to))
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(key), "{from} -> {to}: {e}");
+        }
     }
 
     #[test]

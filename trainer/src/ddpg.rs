@@ -310,6 +310,27 @@ impl Agent {
         self.noise_rng = ChaCha8Rng::seed_from_u64(NOISE_SEED ^ self.updates);
     }
 
+    /// Starts `task` over (`training.task_reset`): its own input and output layers of the
+    /// actor and of each critic are drawn afresh, their targets copied from them and their Adam
+    /// moments cleared. The shared layers and the other task keep everything they learned, and
+    /// the replay buffers are untouched (off-policy data stays valid).
+    pub fn reset_task<R: Rng>(&mut self, task: usize, rng: &mut R) {
+        for index in self.actor.reinit_task(task, rng) {
+            self.actor_optimizer.clear_layer(index);
+        }
+        self.target_actor.copy_task_from(&self.actor, task);
+        for index in self.critic.reinit_task(task, rng) {
+            self.critic_optimizer.clear_layer(index);
+        }
+        self.target_critic.copy_task_from(&self.critic, task);
+        if let Some(twin) = self.twin.as_deref_mut() {
+            for index in twin.critic.reinit_task(task, rng) {
+                twin.optimizer.clear_layer(index);
+            }
+            twin.target.copy_task_from(&twin.critic, task);
+        }
+    }
+
     /// Feature width.
     pub fn obs_dim(&self) -> usize {
         self.actor.inputs()
@@ -713,6 +734,56 @@ mod tests {
             ..bandit_config()
         };
         solves_the_two_task_bandit(config, 3000);
+    }
+
+    #[test]
+    fn reset_task_starts_one_task_over_and_keeps_the_other() {
+        let mut config = bandit_config();
+        config.twin_critics = true;
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let mut agent = Agent::new(4, 2, NetworkConfig::default(), config, &mut rng);
+        let mut brng = ChaCha8Rng::seed_from_u64(6);
+        let batches = vec![batch_of(4, 32, &mut brng), batch_of(4, 32, &mut brng)];
+        for _ in 0..20 {
+            agent.update(&batches);
+        }
+        let before = agent.clone();
+        agent.reset_task(0, &mut ChaCha8Rng::seed_from_u64(7));
+        let obs = [0.1, -0.4, 0.3, 0.2];
+        // The other task acts and values exactly as before.
+        assert_eq!(agent.act(1, &obs), before.act(1, &obs));
+        assert_eq!(agent.critic.task_inputs[1], before.critic.task_inputs[1]);
+        assert_eq!(agent.critic.shared, before.critic.shared);
+        // The reset task's layers are new, its targets follow them, its moments are zero.
+        assert_ne!(agent.actor.task_inputs[0], before.actor.task_inputs[0]);
+        assert_eq!(
+            agent.target_actor.task_outputs[0],
+            agent.actor.task_outputs[0]
+        );
+        assert_eq!(
+            agent.target_critic.task_inputs[0],
+            agent.critic.task_inputs[0]
+        );
+        let twin = agent.twin.as_deref().expect("twin critics");
+        assert_ne!(
+            twin.critic.task_inputs[0],
+            before.twin.as_deref().unwrap().critic.task_inputs[0]
+        );
+        assert_eq!(twin.target.task_outputs[0], twin.critic.task_outputs[0]);
+        assert!(
+            agent.actor_optimizer.first[0]
+                .weights
+                .iter()
+                .all(|&m| m == 0.0)
+        );
+        assert!(
+            agent.actor_optimizer.first[1]
+                .weights
+                .iter()
+                .any(|&m| m != 0.0)
+        );
+        // Its fresh output layer is small: the actor's action starts near zero again.
+        assert!(agent.act(0, &obs).iter().all(|a| a.abs() < 0.05));
     }
 
     #[test]

@@ -180,6 +180,29 @@ impl MultiTaskMlp {
         Some(wide)
     }
 
+    /// Draws `task`'s own input and output layers afresh (as [`new`](Self::new) does), leaving
+    /// the shared layers and the other tasks' layers as they are. Returns those two layers'
+    /// indices in [`layers`](Self::layers) order, for the optimiser's moments. Out-of-range
+    /// `task`: nothing changes and the result is empty.
+    pub fn reinit_task<R: Rng>(&mut self, task: usize, rng: &mut R) -> Vec<usize> {
+        if task >= self.tasks() {
+            return Vec::new();
+        }
+        let (inputs, hidden, outputs) = (self.inputs(), self.hidden(), self.outputs());
+        self.task_inputs[task] = Dense::new_uniform(inputs, hidden, rng);
+        self.task_outputs[task] = Dense::new_uniform_bound(hidden, outputs, OUTPUT_INIT_BOUND, rng);
+        vec![task, self.tasks() + self.shared.len() + task]
+    }
+
+    /// Copies `task`'s own input and output layers from `source` (same shape): a target network
+    /// following a [`reinit_task`](Self::reinit_task) of its online network.
+    pub fn copy_task_from(&mut self, source: &MultiTaskMlp, task: usize) {
+        if task < self.tasks() && task < source.tasks() {
+            self.task_inputs[task] = source.task_inputs[task].clone();
+            self.task_outputs[task] = source.task_outputs[task].clone();
+        }
+    }
+
     /// The same shape with every parameter zero: a gradient accumulator.
     pub fn zeros_like(&self) -> MultiTaskMlp {
         let mut z = self.clone();
@@ -447,6 +470,33 @@ mod tests {
         assert!(!nonzero(&grads.task_inputs[1]) && !nonzero(&grads.task_outputs[1]));
         // Different tasks give different answers from the same input.
         assert_ne!(net.predict(0, &[0.5; 4]), net.predict(1, &[0.5; 4]));
+    }
+
+    #[test]
+    fn reinit_task_redraws_one_tasks_own_layers_only() {
+        let net = test_net(5, 3, Activation::Tanh, 11);
+        let mut fresh = net.clone();
+        let mut rng = ChaCha8Rng::seed_from_u64(99);
+        let touched = fresh.reinit_task(1, &mut rng);
+        assert_eq!(touched, vec![1, 2 + net.shared.len() + 1]);
+        assert_eq!(fresh.task_inputs[0], net.task_inputs[0]);
+        assert_eq!(fresh.task_outputs[0], net.task_outputs[0]);
+        assert_eq!(fresh.shared, net.shared);
+        assert_ne!(fresh.task_inputs[1], net.task_inputs[1]);
+        assert_ne!(fresh.task_outputs[1], net.task_outputs[1]);
+        // The fresh output layer starts small, as a new network's does.
+        assert!(
+            fresh.task_outputs[1]
+                .weights
+                .iter()
+                .all(|w| w.abs() <= OUTPUT_INIT_BOUND)
+        );
+        let x = [0.3, -0.2, 0.5, 0.1, -0.7];
+        assert_eq!(fresh.predict(0, &x), net.predict(0, &x));
+        assert!(fresh.reinit_task(2, &mut rng).is_empty());
+        let mut target = net.clone();
+        target.copy_task_from(&fresh, 1);
+        assert_eq!(target, fresh);
     }
 
     #[test]

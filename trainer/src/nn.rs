@@ -289,6 +289,16 @@ impl Adam {
         }
     }
 
+    /// Zeroes the moments of layer `index` (a layer drawn afresh starts without the old
+    /// layer's momentum); an index past the end changes nothing.
+    pub fn clear_layer(&mut self, index: usize) {
+        for moments in [&mut self.first, &mut self.second] {
+            if let Some(layer) = moments.get_mut(index) {
+                layer.fill_zero();
+            }
+        }
+    }
+
     /// One Adam step: `params[i] -= lr * m_hat / (sqrt(v_hat) + eps)` with `grads[i]`.
     pub fn update<'a>(
         &mut self,

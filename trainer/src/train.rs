@@ -453,6 +453,32 @@ impl Run<'_> {
         Ok(())
     }
 
+    /// After an evaluation: starts over any task that has stalled (see [`stalled_tasks`]).
+    fn reset_stalled_tasks(&mut self, observer: &mut dyn Observer) {
+        let t = &self.config.training;
+        for task in stalled_tasks(t, &t.tasks, &mut self.progress, &self.last_eval) {
+            let i = task.index();
+            // Seeded by the run, the task and the reset's number: reproducible, and unlike
+            // the draws that follow it.
+            let mut rng = ChaCha8Rng::seed_from_u64(
+                self.config.seed
+                    ^ 0x7A5C_4E5E_7000
+                    ^ ((i as u64) << 8)
+                    ^ u64::from(self.progress.task_resets[i]),
+            );
+            self.agent.reset_task(i, &mut rng);
+            observer.note(&format!(
+                "task reset: {} stalled below {:.0}% held-out success for {} of its env steps; \
+                 its layers start over (reset {} of {})",
+                task_name(task),
+                100.0 * t.task_reset_below,
+                t.task_reset_after_task_env_steps,
+                self.progress.task_resets[i],
+                t.task_resets_max
+            ));
+        }
+    }
+
     fn warm_start(&mut self, observer: &mut dyn Observer) -> Result<(), TrainError> {
         let w = &self.config.warm_start;
         let config = self.config;
@@ -538,8 +564,12 @@ impl Run<'_> {
         // Curriculum progress counts environment steps only, so a seed fixes the run whatever
         // the machine's speed (the wall-clock limit only decides where it stops).
         let fraction = |steps: u64| (steps as f64 / t.env_steps.max(1) as f64).min(1.0);
-        let draw_at = |progress: f64| {
-            move |rng: &mut ChaCha8Rng, task| draw_from_stage(config, progress, rng, task)
+        // Each task's curriculum counts from its last stalled-task reset (0 if none).
+        let draw_at = |env_steps: u64, reset_at: [u64; 2]| {
+            move |rng: &mut ChaCha8Rng, task: Task| {
+                let since = env_steps.saturating_sub(reset_at[task.index()]);
+                draw_from_stage(config, fraction(since), rng, task)
+            }
         };
         let rollout_rng = ChaCha8Rng::seed_from_u64(
             config
@@ -551,7 +581,7 @@ impl Run<'_> {
             t.envs,
             config,
             rollout_rng,
-            &mut draw_at(fraction(start_steps)),
+            &mut draw_at(start_steps, self.progress.task_reset_env_steps),
         )?;
         observer.phase("MTDDPG", t.env_steps);
         let mut batches = vec![Batch::default(); Task::COUNT];
@@ -587,7 +617,7 @@ impl Run<'_> {
                 &controller,
                 &mut self.replay,
                 None,
-                &mut draw_at(fraction(self.progress.env_steps)),
+                &mut draw_at(self.progress.env_steps, self.progress.task_reset_env_steps),
             )?;
             let stepped = rollouts.env_steps - before;
             self.progress.env_steps += stepped;
@@ -658,6 +688,7 @@ impl Run<'_> {
             if by_steps && task_steps(self.progress.env_steps) >= next_eval_steps {
                 next_eval_steps += config.eval.every_task_env_steps;
                 self.evaluate(observer)?;
+                self.reset_stalled_tasks(observer);
             } else if !by_steps && self.agent.updates >= next_eval {
                 next_eval = self.agent.updates + config.eval.every_updates;
                 self.evaluate(observer)?;
@@ -677,6 +708,51 @@ impl Run<'_> {
             update_time / update_count as f64
         })
     }
+}
+
+/// The tasks to start over after an evaluation (`training.task_reset_after_task_env_steps`),
+/// with `progress` brought up to date: each task's best mean success since its last reset
+/// takes this evaluation's `rows` in, and a task that has had the patience's worth of its own
+/// env steps since then (the parallel environments share the steps evenly between `tasks`)
+/// without reaching `task_reset_below`, and has resets left, is counted as reset now. Pure: the
+/// caller resets the networks.
+pub(crate) fn stalled_tasks(
+    t: &crate::config::LoopConfig,
+    tasks: &[Task],
+    progress: &mut Progress,
+    rows: &[EvalRow],
+) -> Vec<Task> {
+    let mut stalled = Vec::new();
+    let per_task = |steps: u64| steps / tasks.len().max(1) as u64;
+    for &task in tasks {
+        let i = task.index();
+        let mine: Vec<f64> = rows
+            .iter()
+            .filter(|r| r.scenario.task == task)
+            .map(|r| r.success_rate)
+            .collect();
+        if mine.is_empty() {
+            continue;
+        }
+        let success = mine.iter().sum::<f64>() / mine.len() as f64;
+        progress.task_best_since_reset[i] = progress.task_best_since_reset[i].max(success);
+        let waited = per_task(
+            progress
+                .env_steps
+                .saturating_sub(progress.task_reset_env_steps[i]),
+        );
+        if t.task_reset_after_task_env_steps > 0
+            && waited >= t.task_reset_after_task_env_steps
+            && progress.task_best_since_reset[i] < t.task_reset_below
+            && progress.task_resets[i] < t.task_resets_max
+        {
+            progress.task_resets[i] += 1;
+            progress.task_reset_env_steps[i] = progress.env_steps;
+            progress.task_best_since_reset[i] = 0.0;
+            stalled.push(task);
+        }
+    }
+    stalled
 }
 
 /// Runs (or resumes) a training run as configured; see the module docs.
@@ -995,6 +1071,58 @@ mod tests {
             mean_time_ratio: 2.0,
             mean_path_length: 500.0,
         }
+    }
+
+    #[test]
+    fn a_task_is_reset_only_after_its_patience_without_success() {
+        let t = crate::config::LoopConfig {
+            task_reset_after_task_env_steps: 50_000,
+            task_reset_below: 0.25,
+            task_resets_max: 2,
+            ..crate::config::LoopConfig::default()
+        };
+        let tasks = Task::ALL;
+        let mut progress = Progress::default();
+        let eval = |driving: f64, collecting: f64| {
+            vec![
+                row(Task::Driving, 4, driving),
+                row(Task::Driving, 8, driving),
+                row(Task::Collecting, 4, collecting),
+                row(Task::Collecting, 8, collecting),
+            ]
+        };
+        // 40k steps per task: patience not yet spent.
+        progress.env_steps = 80_000;
+        assert!(stalled_tasks(&t, &tasks, &mut progress, &eval(0.0, 0.5)).is_empty());
+        // 50k per task: driving never reached 25 % and goes; collecting reached 50 % and stays
+        // even though it has fallen to 0 since.
+        progress.env_steps = 100_000;
+        assert_eq!(
+            stalled_tasks(&t, &tasks, &mut progress, &eval(0.125, 0.0)),
+            vec![Task::Driving]
+        );
+        assert_eq!(progress.task_resets, [1, 0]);
+        assert_eq!(progress.task_reset_env_steps, [100_000, 0]);
+        assert_eq!(progress.task_best_since_reset, [0.0, 0.5]);
+        // Its patience counts from the reset.
+        progress.env_steps = 180_000;
+        assert!(stalled_tasks(&t, &tasks, &mut progress, &eval(0.0, 0.0)).is_empty());
+        progress.env_steps = 200_000;
+        assert_eq!(
+            stalled_tasks(&t, &tasks, &mut progress, &eval(0.0, 0.0)),
+            vec![Task::Driving]
+        );
+        // Two resets at most.
+        progress.env_steps = 400_000;
+        assert!(stalled_tasks(&t, &tasks, &mut progress, &eval(0.0, 0.0)).is_empty());
+        assert_eq!(progress.task_resets, [2, 0]);
+        // Off: nothing is ever reset.
+        let off = crate::config::LoopConfig::default();
+        let mut fresh = Progress {
+            env_steps: 1_000_000,
+            ..Progress::default()
+        };
+        assert!(stalled_tasks(&off, &tasks, &mut fresh, &eval(0.0, 0.0)).is_empty());
     }
 
     #[test]

@@ -51,6 +51,7 @@ fn the_from_scratch_configs_pass_the_audit() {
         "mtddpg-scratch.toml",
         "mtddpg-scratch2.toml",
         "mtddpg-scratch6.toml",
+        "mtddpg-scratch9.toml",
     ] {
         passes(name);
     }
