@@ -641,6 +641,12 @@ pub struct LoopConfig {
     pub task_reset_below: f64,
     /// Resets per task at most.
     pub task_resets_max: u32,
+    /// Whether a reset task's replay is emptied too (its transitions are the stalled actor's:
+    /// valid off-policy, but without a success in them).
+    pub task_reset_clears_replay: bool,
+    /// After a reset, that task's environments fly random waypoints for this many env steps
+    /// (of the whole run, as `random_warmup_steps` counts them), the other task its actor.
+    pub task_reset_warmup_steps: u64,
 }
 
 /// How restart candidates are ranked ([`LoopConfig::restart_candidates`]).
@@ -708,6 +714,8 @@ impl Default for LoopConfig {
             task_reset_after_task_env_steps: 0,
             task_reset_below: 0.25,
             task_resets_max: 2,
+            task_reset_clears_replay: false,
+            task_reset_warmup_steps: 0,
         }
     }
 }
@@ -891,6 +899,12 @@ impl TrainConfig {
             if !(1..=8).contains(&t.task_resets_max) {
                 return bad("training.task_resets_max", "must be 1 to 8");
             }
+            if t.task_reset_warmup_steps >= t.env_steps {
+                return bad(
+                    "training.task_reset_warmup_steps",
+                    "must be below training.env_steps",
+                );
+            }
         }
         let g = &self.curriculum.driving_goal_distance;
         if !(g.first_share > 0.0 && g.first_share <= 1.0) {
@@ -1019,6 +1033,8 @@ mod tests {
         same.training.task_reset_after_task_env_steps = 0;
         same.training.task_reset_below = eighth.training.task_reset_below;
         same.training.task_resets_max = eighth.training.task_resets_max;
+        same.training.task_reset_clears_replay = false;
+        same.training.task_reset_warmup_steps = 0;
         assert_eq!(same, eighth);
         for (from, to, key) in [
             (

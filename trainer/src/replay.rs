@@ -151,6 +151,12 @@ impl ReplayBuffer {
         self.others.as_ref().map_or(0, |o| o.max_others)
     }
 
+    /// Forgets every stored transition (the memory stays allocated for the next ones).
+    pub fn clear(&mut self) {
+        self.len = 0;
+        self.next = 0;
+    }
+
     /// Stored transitions.
     pub fn len(&self) -> usize {
         self.len
@@ -436,6 +442,24 @@ mod tests {
             let terminated = (v as usize).is_multiple_of(2);
             assert_eq!(batch.continues[r], if terminated { 0.0 } else { 1.0 });
         }
+    }
+
+    #[test]
+    fn a_cleared_buffer_samples_nothing_and_fills_again() {
+        let mut b = ReplayBuffer::new(1, 1, 3);
+        for k in 0..4 {
+            b.push(&[k as f32], &[0.0], 1.0, &[0.0], false);
+        }
+        b.clear();
+        assert!(b.is_empty());
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        let mut batch = Batch::default();
+        b.sample(8, &mut rng, &mut batch);
+        assert_eq!(batch.size, 0);
+        b.push(&[7.0], &[0.5], 2.0, &[8.0], true);
+        b.sample(8, &mut rng, &mut batch);
+        assert_eq!(b.len(), 1);
+        assert!(batch.obs.iter().all(|&v| v == 7.0));
     }
 
     fn run(n: usize, rewards: &[f32], terminated: bool) -> Vec<NStepTransition> {

@@ -193,6 +193,10 @@ pub enum Controller<'a> {
     /// [`WAYPOINT_STEPS`] steps). Fills the replay with varied, purposeful flight before the
     /// actor has learned anything.
     RandomWaypoints,
+    /// The actor as [`Controller::Actor`], except in the environments of the tasks marked
+    /// (`Task::index`), which fly [`Controller::RandomWaypoints`]: a task started over by a
+    /// stalled-task reset has a warm-up of its own while the other task flies its actor.
+    ActorExceptRandomTasks(&'a MultiTaskMlp, f32, [bool; Task::COUNT]),
     /// The rule-based baselines, one per task and flock (the warm start's teacher table); their
     /// velocities are recorded as normalised local-frame actions.
     Baseline(&'a WarmStartConfig),
@@ -584,6 +588,16 @@ impl Rollouts {
                             *v = (tape.output()[k * 3 + j] + n).clamp(-1.0, 1.0);
                         }
                         out[i][h] = a;
+                    }
+                }
+                out
+            }
+            Controller::ActorExceptRandomTasks(actor, noise_std, random) => {
+                let mut out = self.choose_actions(&Controller::Actor(actor, noise_std));
+                let waypoints = self.choose_actions(&Controller::RandomWaypoints);
+                for ((slot, actions), flown) in self.slots.iter().zip(&mut out).zip(waypoints) {
+                    if random[slot.draw.task.index()] {
+                        *actions = flown;
                     }
                 }
                 out
@@ -1018,6 +1032,49 @@ mod tests {
         for k in (0..FEATURES).filter(|&k| k != altitude) {
             assert_eq!(a[k], b[k], "feature {k}");
         }
+    }
+
+    #[test]
+    fn a_task_marked_random_flies_waypoints_while_the_other_flies_the_actor() {
+        use crate::replay::Batch;
+        let mut config = TrainConfig::default();
+        config.training.episode_step_limit = 50;
+        config.ddpg.n_step = 1;
+        let mut rng = ChaCha8Rng::seed_from_u64(1);
+        // A fresh actor's outputs are tiny (OUTPUT_INIT_BOUND); the waypoints fly at full speed.
+        let actor = MultiTaskMlp::new(MlpShape::actor(FEATURES, 16, 1), &mut rng);
+        let mut draw = |_: &mut ChaCha8Rng, task| Draw::paper(task, 4, 3);
+        let mut rollouts =
+            Rollouts::new(2, &config, ChaCha8Rng::seed_from_u64(2), &mut draw).expect("envs");
+        let mut replay: Vec<ReplayBuffer> = (0..2)
+            .map(|_| ReplayBuffer::new(FEATURES, 3, 100))
+            .collect();
+        let controller = Controller::ActorExceptRandomTasks(&actor, 0.0, [true, false]);
+        for _ in 0..4 {
+            rollouts
+                .step(&controller, &mut replay, None, &mut draw)
+                .expect("step");
+        }
+        let planar_speed = |buffer: &ReplayBuffer| {
+            let mut batch = Batch::default();
+            buffer.sample(32, &mut ChaCha8Rng::seed_from_u64(4), &mut batch);
+            assert!(batch.size > 0);
+            batch
+                .actions
+                .chunks_exact(3)
+                .map(|a| a[0].hypot(a[1]))
+                .fold(f32::INFINITY, f32::min)
+        };
+        assert!(
+            planar_speed(&replay[0]) > 0.5,
+            "driving flies its waypoints"
+        );
+        let mut batch = Batch::default();
+        replay[1].sample(32, &mut ChaCha8Rng::seed_from_u64(5), &mut batch);
+        assert!(
+            batch.actions.iter().all(|a| a.abs() < 0.05),
+            "collecting flies the fresh actor"
+        );
     }
 
     #[test]

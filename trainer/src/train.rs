@@ -467,6 +467,9 @@ impl Run<'_> {
                     ^ u64::from(self.progress.task_resets[i]),
             );
             self.agent.reset_task(i, &mut rng);
+            if t.task_reset_clears_replay {
+                self.replay[i].clear();
+            }
             observer.note(&format!(
                 "task reset: {} stalled below {:.0}% held-out success for {} of its env steps; \
                  its layers start over (reset {} of {})",
@@ -607,8 +610,19 @@ impl Run<'_> {
         };
         let limit = self.stop_at.map_or(t.env_steps, |s| s.min(t.env_steps));
         while self.progress.env_steps < limit && self.wall() < t.wall_clock_limit_s {
+            // A task started over by a stalled-task reset has a warm-up of its own.
+            let reset_warmup = Task::ALL.map(|task| {
+                let at = self.progress.task_reset_env_steps[task.index()];
+                at > 0 && self.progress.env_steps < at.saturating_add(t.task_reset_warmup_steps)
+            });
             let controller = if self.progress.env_steps < t.random_warmup_steps {
                 Controller::RandomWaypoints
+            } else if reset_warmup.contains(&true) {
+                Controller::ActorExceptRandomTasks(
+                    &self.agent.actor,
+                    config.ddpg.exploration_noise,
+                    reset_warmup,
+                )
             } else {
                 Controller::Actor(&self.agent.actor, config.ddpg.exploration_noise)
             };
