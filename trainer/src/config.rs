@@ -1025,6 +1025,11 @@ mod tests {
         assert_eq!(t.task_reset_after_task_env_steps, 75_000);
         assert_eq!(t.task_reset_below, 0.25);
         assert_eq!(t.task_resets_max, 3);
+        assert!(!t.task_reset_clears_replay);
+        let eleventh = TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch11.toml"))
+            .expect("the eleventh config parses");
+        assert!(eleventh.training.task_reset_clears_replay);
+        assert_eq!(eleventh.training.task_reset_warmup_steps, 20_000);
         // Everything else is the eighth config's.
         let eighth = TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch8.toml"))
             .expect("the eighth config parses");
