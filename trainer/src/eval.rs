@@ -162,16 +162,19 @@ pub fn weakest_task_score(rows: &[EvalRow]) -> (f64, f64) {
     let (mean, _) = score(rows);
     let weakest = [Task::Driving, Task::Collecting]
         .iter()
-        .filter_map(|&task| {
-            let mine: Vec<f64> = rows
-                .iter()
-                .filter(|r| r.scenario.task == task)
-                .map(|r| r.success_rate)
-                .collect();
-            (!mine.is_empty()).then(|| mine.iter().sum::<f64>() / mine.len() as f64)
-        })
+        .filter_map(|&task| task_success(rows, task))
         .fold(f64::INFINITY, f64::min);
     (if weakest.is_finite() { weakest } else { 0.0 }, 1.0 - mean)
+}
+
+/// The mean success over `task`'s scenarios in `rows` (`None` when it has none).
+pub fn task_success(rows: &[EvalRow], task: Task) -> Option<f64> {
+    let mine: Vec<f64> = rows
+        .iter()
+        .filter(|r| r.scenario.task == task)
+        .map(|r| r.success_rate)
+        .collect();
+    (!mine.is_empty()).then(|| mine.iter().sum::<f64>() / mine.len() as f64)
 }
 
 /// Whether score `a` beats score `b`: more success, or equal success (within half an episode

@@ -32,7 +32,7 @@ use thiserror::Error;
 use crate::checkpoint::{self, Checkpoint, CheckpointError, Progress};
 use crate::config::TrainConfig;
 use crate::ddpg::{ACTION_DIM, Agent};
-use crate::eval::{EvalRow, EvalScenario, better, evaluate_flat, score};
+use crate::eval::{EvalRow, EvalScenario, better, evaluate_flat, score, task_success};
 use crate::evolve::{Fitness, evolve_task};
 use crate::nn::{Adam, AdamConfig};
 use crate::policy::ActorPolicy;
@@ -740,15 +740,9 @@ pub(crate) fn stalled_tasks(
     let per_task = |steps: u64| steps / tasks.len().max(1) as u64;
     for &task in tasks {
         let i = task.index();
-        let mine: Vec<f64> = rows
-            .iter()
-            .filter(|r| r.scenario.task == task)
-            .map(|r| r.success_rate)
-            .collect();
-        if mine.is_empty() {
+        let Some(success) = task_success(rows, task) else {
             continue;
-        }
-        let success = mine.iter().sum::<f64>() / mine.len() as f64;
+        };
         progress.task_best_since_reset[i] = progress.task_best_since_reset[i].max(success);
         let waited = per_task(
             progress
