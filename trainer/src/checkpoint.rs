@@ -68,6 +68,11 @@ pub struct Progress {
     /// Each task's best mean held-out success since its last reset.
     #[serde(default)]
     pub task_best_since_reset: [f64; 2],
+    /// Env steps of the DDPG phase at each task's last evaluation that reached
+    /// `training.task_reset_below` (0: none yet); the `recent` reset rule's patience counts
+    /// from here. Older checkpoints read as none.
+    #[serde(default)]
+    pub task_last_pass_env_steps: [u64; 2],
 }
 
 /// Everything a checkpoint holds.
@@ -482,6 +487,7 @@ mod tests {
             task_resets: [1, 0],
             task_reset_env_steps: [600, 0],
             task_best_since_reset: [0.125, 0.5],
+            task_last_pass_env_steps: [900, 1200],
         };
         let original = Checkpoint {
             agent,
@@ -565,5 +571,6 @@ mod tests {
         assert_eq!(p.env_steps, 500);
         assert_eq!(p.task_resets, [0, 0]);
         assert_eq!(p.task_reset_env_steps, [0, 0]);
+        assert_eq!(p.task_last_pass_env_steps, [0, 0]);
     }
 }

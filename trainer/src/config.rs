@@ -256,6 +256,10 @@ pub struct CurriculumConfig {
     /// Driving episodes whose herders spawn pulled towards the flock early in training; off
     /// unless configured.
     pub driving_herder_distance: HerderDistanceCurriculum,
+    /// Collecting episodes whose scattered targets are pulled towards the goal early in
+    /// training: each keeps a share of its distance beyond the goal's edge
+    /// (`rollout::pull_targets_to_goal`); off unless configured.
+    pub collecting_target_distance: HerderDistanceCurriculum,
 }
 
 /// A reverse curriculum for driving: early driving episodes keep only a share of the paper
@@ -351,6 +355,7 @@ impl Default for CurriculumConfig {
             enabled: true,
             driving_goal_distance: GoalDistanceCurriculum::default(),
             driving_herder_distance: HerderDistanceCurriculum::default(),
+            collecting_target_distance: HerderDistanceCurriculum::default(),
             stages: vec![
                 stage(0.0, &[2, 4, 8, 16], &[1, 2, 4]),
                 stage(0.25, &[4, 8, 16, 32, 64], &[1, 2, 4, 8, 0]),
@@ -647,6 +652,22 @@ pub struct LoopConfig {
     /// After a reset, that task's environments fly random waypoints for this many env steps
     /// (of the whole run, as `random_warmup_steps` counts them), the other task its actor.
     pub task_reset_warmup_steps: u64,
+    /// Which evaluations the patience reads ([`TaskResetRule`]).
+    pub task_reset_rule: TaskResetRule,
+}
+
+/// Which evaluations decide that a task has stalled ([`LoopConfig::task_reset_after_task_env_steps`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum TaskResetRule {
+    /// The task has not reached `task_reset_below` at any evaluation since its last reset
+    /// (the default, so older configs train as they did). A task that passed once and then
+    /// collapsed is never reset.
+    #[default]
+    BestSinceReset,
+    /// The task has not reached `task_reset_below` at any evaluation within the patience, the
+    /// last `task_reset_after_task_env_steps` of its own env steps: a collapse is a stall too.
+    Recent,
 }
 
 /// How restart candidates are ranked ([`LoopConfig::restart_candidates`]).
@@ -716,6 +737,7 @@ impl Default for LoopConfig {
             task_resets_max: 2,
             task_reset_clears_replay: false,
             task_reset_warmup_steps: 0,
+            task_reset_rule: TaskResetRule::BestSinceReset,
         }
     }
 }
@@ -925,18 +947,24 @@ impl TrainConfig {
                 "must be in [0, 100]",
             );
         }
-        let h = &self.curriculum.driving_herder_distance;
-        if !(h.first_share >= 0.0 && h.first_share <= 1.0) {
-            return bad(
+        for (h, first, full) in [
+            (
+                &self.curriculum.driving_herder_distance,
                 "curriculum.driving_herder_distance.first_share",
-                "must be in [0, 1]",
-            );
-        }
-        if !(h.full_at_progress >= 0.0 && h.full_at_progress <= 1.0) {
-            return bad(
                 "curriculum.driving_herder_distance.full_at_progress",
-                "must be in [0, 1]",
-            );
+            ),
+            (
+                &self.curriculum.collecting_target_distance,
+                "curriculum.collecting_target_distance.first_share",
+                "curriculum.collecting_target_distance.full_at_progress",
+            ),
+        ] {
+            if !(h.first_share >= 0.0 && h.first_share <= 1.0) {
+                return bad(first, "must be in [0, 1]");
+            }
+            if !(h.full_at_progress >= 0.0 && h.full_at_progress <= 1.0) {
+                return bad(full, "must be in [0, 1]");
+            }
         }
         let ev = &self.evolution;
         if ev
@@ -1015,6 +1043,50 @@ mod tests {
         let bad = text.replace("encoder_version = 3", "encoder_version = 2");
         let e = TrainConfig::from_toml_str(&bad).unwrap_err().to_string();
         assert!(e.contains("encoder_version"), "{e}");
+    }
+
+    #[test]
+    fn the_twelfth_config_is_the_eleventh_with_recent_resets_and_the_collecting_curriculum() {
+        let twelfth = TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch12.toml"))
+            .expect("the twelfth config parses");
+        assert_eq!(twelfth.training.task_reset_rule, TaskResetRule::Recent);
+        let c = twelfth.curriculum.collecting_target_distance;
+        assert_eq!((c.first_share, c.full_at_progress), (0.2, 0.3));
+        let eleventh = TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch11.toml"))
+            .expect("the eleventh config parses");
+        assert_eq!(
+            eleventh.training.task_reset_rule,
+            TaskResetRule::BestSinceReset
+        );
+        let mut same = twelfth.clone();
+        same.output_dir = eleventh.output_dir.clone();
+        same.training.task_reset_rule = TaskResetRule::BestSinceReset;
+        same.curriculum.collecting_target_distance = HerderDistanceCurriculum::default();
+        assert_eq!(same, eleventh);
+        let text = include_str!("../configs/mtddpg-scratch12.toml");
+        for (from, to, key) in [
+            (
+                "task_reset_rule = \"recent\"",
+                "task_reset_rule = \"latest\"",
+                "task_reset_rule",
+            ),
+            (
+                "first_share = 0.2             # scattered",
+                "first_share = -0.2             # scattered",
+                "curriculum.collecting_target_distance.first_share",
+            ),
+            (
+                "full_at_progress = 0.3        # ... rising to 100 % at 30 % of the run\n\n[warm_start]",
+                "full_at_progress = 1.3\n\n[warm_start]",
+                "curriculum.collecting_target_distance.full_at_progress",
+            ),
+        ] {
+            assert!(text.contains(from), "{from}");
+            let e = TrainConfig::from_toml_str(&text.replace(from, to))
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(key), "{key}: {e}");
+        }
     }
 
     #[test]

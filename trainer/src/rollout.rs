@@ -37,8 +37,10 @@ pub struct Draw {
     /// The indoor room's layout at paper scale instead of the paper's (see
     /// `LoopConfig::room_layout_fraction`).
     pub room: bool,
-    /// Driving: the share of the spawned start-goal distance kept, in thousandths (1000: the
-    /// layout's own; see `GoalDistanceCurriculum`). An integer so that a draw stays `Eq`.
+    /// The share of the spawned distance to the goal kept, in thousandths (1000: the layout's
+    /// own). Driving: of the start-goal distance, the goal moved (`GoalDistanceCurriculum`);
+    /// collecting: of each target's distance beyond the goal's edge, the targets moved
+    /// ([`pull_targets_to_goal`]). An integer so that a draw stays `Eq`.
     pub goal_distance_permille: u16,
     /// Driving: the share of each herder's spawned distance to the flock kept, in thousandths
     /// (1000: where the layout put it; see `HerderDistanceCurriculum`).
@@ -164,6 +166,33 @@ pub fn pull_herders(world: &skyherd_sim::World, share: f64, keep_out: f64) -> sk
         let kept = (share * distance).max(keep_out.max(0.0)) / distance;
         h[0] = c[0] + kept * (h[0] - c[0]);
         h[1] = c[1] + kept * (h[1] - c[1]);
+    }
+    w
+}
+
+/// The least a pulled target keeps beyond the goal's edge, in goal radii: it still has to be
+/// herded in.
+pub const PULLED_TARGET_MIN_BEYOND_EDGE_RADII: f64 = 0.2;
+
+/// `world` with each target outside the goal moved along the line towards the goal's centre,
+/// keeping `share` of its distance beyond the goal's edge but at least
+/// [`PULLED_TARGET_MIN_BEYOND_EDGE_RADII`] goal radii of it (a target already nearer stays where
+/// it is). The target stays inside the arena since both ends of the line are. The collecting curriculum's start states: scattered targets, but a shorter way to the goal.
+pub fn pull_targets_to_goal(world: &skyherd_sim::World, share: f64) -> skyherd_sim::World {
+    let mut w = world.clone();
+    let g = w.goal.center;
+    let r = w.goal.radius.max(0.0);
+    let min_beyond = PULLED_TARGET_MIN_BEYOND_EDGE_RADII * r;
+    let share = share.clamp(0.0, 1.0);
+    for t in &mut w.targets {
+        let distance = (t[0] - g[0]).hypot(t[1] - g[1]);
+        let beyond = distance - r;
+        if beyond <= min_beyond || distance <= 0.0 {
+            continue;
+        }
+        let kept = (r + (share * beyond).max(min_beyond)) / distance;
+        t[0] = g[0] + kept * (t[0] - g[0]);
+        t[1] = g[1] + kept * (t[1] - g[1]);
     }
     w
 }
@@ -342,7 +371,11 @@ impl Rollouts {
         env.reset(seed);
         let pulls_goal = draw.goal_distance_permille < 1000;
         let pulls_herders = draw.herder_distance_permille < 1000;
-        if draw.task == Task::Driving && (pulls_goal || pulls_herders) {
+        if draw.task == Task::Collecting && pulls_goal {
+            let world =
+                pull_targets_to_goal(env.world(), f64::from(draw.goal_distance_permille) / 1000.0);
+            env.reset_to(world, seed)?;
+        } else if draw.task == Task::Driving && (pulls_goal || pulls_herders) {
             let mut world = env.world().clone();
             if pulls_goal {
                 world = pull_goal_at_least(
@@ -698,8 +731,14 @@ fn draw_in(
     let targets = stage.targets[rng.random_range(0..stage.targets.len())];
     let herders = stage.herders[rng.random_range(0..stage.herders.len())];
     let room = draw_room(config, rng, task, targets);
-    let floor = config.curriculum.driving_goal_distance.floor_at(progress);
-    let goal_distance_permille = if task == Task::Driving && floor < 1.0 {
+    let floor = match task {
+        Task::Driving => config.curriculum.driving_goal_distance.floor_at(progress),
+        Task::Collecting => config
+            .curriculum
+            .collecting_target_distance
+            .floor_at(progress),
+    };
+    let goal_distance_permille = if floor < 1.0 {
         (rng.random_range(floor..=1.0) * 1000.0).round() as u16
     } else {
         1000
@@ -810,6 +849,81 @@ mod tests {
                 .floor_at(0.0),
             1.0
         );
+    }
+
+    #[test]
+    fn the_collecting_curriculum_pulls_early_targets_towards_the_goal_and_lets_go_later() {
+        let mut config = TrainConfig::default();
+        config.curriculum.collecting_target_distance = crate::config::HerderDistanceCurriculum {
+            first_share: 0.2,
+            full_at_progress: 0.5,
+        };
+        let mut rng = ChaCha8Rng::seed_from_u64(9);
+        let early: Vec<Draw> = (0..200)
+            .map(|_| draw_from_stage(&config, 0.0, &mut rng, Task::Collecting))
+            .collect();
+        assert!(
+            early
+                .iter()
+                .all(|d| (200..=1000).contains(&d.goal_distance_permille))
+        );
+        assert!(early.iter().any(|d| d.goal_distance_permille < 300));
+        let late = draw_from_stage(&config, 0.5, &mut rng, Task::Collecting);
+        assert_eq!(late.goal_distance_permille, 1000);
+        // Driving draws are not touched by it.
+        let driving = draw_from_stage(&config, 0.0, &mut rng, Task::Driving);
+        assert_eq!(driving.goal_distance_permille, 1000);
+        // Each target keeps the share of its distance beyond the edge, on its line to the
+        // goal's centre, never nearer the edge than the floor; the goal and herders stay.
+        let mut env = Env::new(Scenario::paper(Task::Collecting)).expect("env");
+        env.reset(3);
+        let w = env.world().clone();
+        let g = w.goal.center;
+        let r = w.goal.radius;
+        let beyond = |p: &[f64; 2]| (p[0] - g[0]).hypot(p[1] - g[1]) - r;
+        let pulled = pull_targets_to_goal(&w, 0.5);
+        assert_eq!(pulled.goal, w.goal);
+        assert_eq!(pulled.herders, w.herders);
+        for (before, after) in w.targets.iter().zip(&pulled.targets) {
+            let want = (0.5 * beyond(before)).max(PULLED_TARGET_MIN_BEYOND_EDGE_RADII * r);
+            assert!(
+                (beyond(after) - want).abs() < 1e-9,
+                "{before:?} -> {after:?}"
+            );
+            let cross =
+                (before[0] - g[0]) * (after[1] - g[1]) - (before[1] - g[1]) * (after[0] - g[0]);
+            assert!(cross.abs() < 1e-6, "on the line to the centre");
+        }
+        let floored = pull_targets_to_goal(&w, 0.0);
+        assert!(
+            floored
+                .targets
+                .iter()
+                .all(|p| (beyond(p) - PULLED_TARGET_MIN_BEYOND_EDGE_RADII * r).abs() < 1e-9)
+        );
+        floored
+            .validate()
+            .expect("pulled targets make a valid world");
+        let kept = pull_targets_to_goal(&w, 1.0);
+        for (a, b) in kept.targets.iter().zip(&w.targets) {
+            assert!(
+                (a[0] - b[0]).abs() < 1e-9 && (a[1] - b[1]).abs() < 1e-9,
+                "{a:?} {b:?}"
+            );
+        }
+        // A training slot of such a draw starts from the same episode's world, pulled.
+        let start = |permille: u16| {
+            let draw = Draw {
+                goal_distance_permille: permille,
+                ..Draw::paper(Task::Collecting, 8, 4)
+            };
+            let r = Rollouts::new(1, &config, ChaCha8Rng::seed_from_u64(1), &mut |_, _| draw)
+                .expect("rollouts");
+            r.slots[0].env.world().clone()
+        };
+        let (full, short) = (start(1000), start(300));
+        assert_eq!(short.targets, pull_targets_to_goal(&full, 0.3).targets);
+        assert_ne!(short.targets, full.targets);
     }
 
     #[test]

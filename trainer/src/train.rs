@@ -30,7 +30,7 @@ use skyherd_sim::task::task_name;
 use thiserror::Error;
 
 use crate::checkpoint::{self, Checkpoint, CheckpointError, Progress};
-use crate::config::TrainConfig;
+use crate::config::{TaskResetRule, TrainConfig};
 use crate::ddpg::{ACTION_DIM, Agent};
 use crate::eval::{EvalRow, EvalScenario, better, evaluate_flat, score, task_success};
 use crate::evolve::{Fitness, evolve_task};
@@ -725,11 +725,13 @@ impl Run<'_> {
 }
 
 /// The tasks to start over after an evaluation (`training.task_reset_after_task_env_steps`),
-/// with `progress` brought up to date: each task's best mean success since its last reset
-/// takes this evaluation's `rows` in, and a task that has had the patience's worth of its own
-/// env steps since then (the parallel environments share the steps evenly between `tasks`)
-/// without reaching `task_reset_below`, and has resets left, is counted as reset now. Pure: the
-/// caller resets the networks.
+/// with `progress` brought up to date: each task's best mean success since its last reset, and
+/// the step of its last evaluation at or above `task_reset_below`, take this evaluation's
+/// `rows` in. A task that has had the patience's worth of its own env steps (the parallel
+/// environments share the steps evenly between `tasks`) without reaching the bar, counted from
+/// its last reset (`TaskResetRule::BestSinceReset`) or from its last reset or last pass,
+/// whichever is later (`TaskResetRule::Recent`), and has resets left, is counted as reset now.
+/// Pure: the caller resets the networks.
 pub(crate) fn stalled_tasks(
     t: &crate::config::LoopConfig,
     tasks: &[Task],
@@ -744,14 +746,25 @@ pub(crate) fn stalled_tasks(
             continue;
         };
         progress.task_best_since_reset[i] = progress.task_best_since_reset[i].max(success);
-        let waited = per_task(
-            progress
-                .env_steps
-                .saturating_sub(progress.task_reset_env_steps[i]),
-        );
+        if success >= t.task_reset_below {
+            progress.task_last_pass_env_steps[i] = progress.env_steps;
+        }
+        let (since, stalled_now) = match t.task_reset_rule {
+            TaskResetRule::BestSinceReset => (
+                progress.task_reset_env_steps[i],
+                progress.task_best_since_reset[i] < t.task_reset_below,
+            ),
+            // The patience counts from the later of the reset and the last pass, so a pass
+            // within it keeps the task.
+            TaskResetRule::Recent => (
+                progress.task_reset_env_steps[i].max(progress.task_last_pass_env_steps[i]),
+                true,
+            ),
+        };
+        let waited = per_task(progress.env_steps.saturating_sub(since));
         if t.task_reset_after_task_env_steps > 0
             && waited >= t.task_reset_after_task_env_steps
-            && progress.task_best_since_reset[i] < t.task_reset_below
+            && stalled_now
             && progress.task_resets[i] < t.task_resets_max
         {
             progress.task_resets[i] += 1;
@@ -1131,6 +1144,61 @@ mod tests {
             ..Progress::default()
         };
         assert!(stalled_tasks(&off, &tasks, &mut fresh, &eval(0.0, 0.0)).is_empty());
+    }
+
+    #[test]
+    fn the_recent_rule_also_resets_a_task_that_passed_and_collapsed() {
+        let t = crate::config::LoopConfig {
+            task_reset_after_task_env_steps: 50_000,
+            task_reset_below: 0.25,
+            task_resets_max: 2,
+            task_reset_rule: crate::config::TaskResetRule::Recent,
+            ..crate::config::LoopConfig::default()
+        };
+        let tasks = Task::ALL;
+        let mut progress = Progress::default();
+        let eval = |driving: f64, collecting: f64| {
+            vec![
+                row(Task::Driving, 4, driving),
+                row(Task::Collecting, 4, collecting),
+            ]
+        };
+        // 25k per task: collecting passes (at the bar exactly), driving does not.
+        progress.env_steps = 50_000;
+        assert!(stalled_tasks(&t, &tasks, &mut progress, &eval(0.0, 0.25)).is_empty());
+        assert_eq!(progress.task_last_pass_env_steps, [0, 50_000]);
+        // 50k per task: driving has never passed and goes, as under the other rule;
+        // collecting passed 25k of its steps ago and stays.
+        progress.env_steps = 100_000;
+        assert_eq!(
+            stalled_tasks(&t, &tasks, &mut progress, &eval(0.0, 0.0)),
+            vec![Task::Driving]
+        );
+        // Below the bar at every evaluation of the 50k of its own steps since its pass:
+        // collecting has collapsed and goes, where the best-since-reset rule keeps it for ever.
+        progress.env_steps = 125_000;
+        assert!(stalled_tasks(&t, &tasks, &mut progress, &eval(0.5, 0.125)).is_empty());
+        progress.env_steps = 150_000;
+        assert_eq!(
+            stalled_tasks(&t, &tasks, &mut progress, &eval(0.5, 0.125)),
+            vec![Task::Collecting]
+        );
+        assert_eq!(progress.task_resets, [1, 1]);
+        // Driving passed at 125k and 150k: below the bar since, but not yet for its patience.
+        progress.env_steps = 200_000;
+        assert!(stalled_tasks(&t, &tasks, &mut progress, &eval(0.0, 0.5)).is_empty());
+        let mut best = progress;
+        let keep = crate::config::LoopConfig {
+            task_reset_rule: crate::config::TaskResetRule::BestSinceReset,
+            ..t.clone()
+        };
+        best.env_steps = 400_000;
+        assert!(stalled_tasks(&keep, &tasks, &mut best, &eval(0.0, 0.5)).is_empty());
+        progress.env_steps = 400_000;
+        assert_eq!(
+            stalled_tasks(&t, &tasks, &mut progress, &eval(0.0, 0.5)),
+            vec![Task::Driving]
+        );
     }
 
     #[test]
