@@ -1063,6 +1063,16 @@ mod tests {
         same.training.task_reset_rule = TaskResetRule::BestSinceReset;
         same.curriculum.collecting_target_distance = HerderDistanceCurriculum::default();
         assert_eq!(same, eleventh);
+        // The thirteenth differs from it only in collecting's shaping.
+        let thirteenth =
+            TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch13.toml"))
+                .expect("the thirteenth config parses");
+        let mut same = thirteenth.clone();
+        same.output_dir = twelfth.output_dir.clone();
+        same.reward.audited.shaping = 1.0;
+        same.reward.audited.shaping_form = crate::reward::ShapingForm::Potential;
+        assert_eq!(same, twelfth);
+        assert_eq!(thirteenth.reward.audited.shaping, 5.0);
         let text = include_str!("../configs/mtddpg-scratch12.toml");
         for (from, to, key) in [
             (

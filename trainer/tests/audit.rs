@@ -52,6 +52,7 @@ fn the_from_scratch_configs_pass_the_audit() {
         "mtddpg-scratch2.toml",
         "mtddpg-scratch6.toml",
         "mtddpg-scratch9.toml",
+        "mtddpg-scratch13.toml",
     ] {
         passes(name);
     }
