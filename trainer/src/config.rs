@@ -255,11 +255,11 @@ pub struct CurriculumConfig {
     pub driving_goal_distance: GoalDistanceCurriculum,
     /// Driving episodes whose herders spawn pulled towards the flock early in training; off
     /// unless configured.
-    pub driving_herder_distance: HerderDistanceCurriculum,
+    pub driving_herder_distance: SpawnShareCurriculum,
     /// Collecting episodes whose scattered targets are pulled towards the goal early in
     /// training: each keeps a share of its distance beyond the goal's edge
     /// (`rollout::pull_targets_to_goal`); off unless configured.
-    pub collecting_target_distance: HerderDistanceCurriculum,
+    pub collecting_target_distance: SpawnShareCurriculum,
 }
 
 /// A reverse curriculum for driving: early driving episodes keep only a share of the paper
@@ -305,25 +305,29 @@ impl GoalDistanceCurriculum {
     }
 }
 
-/// A start-state curriculum for driving's herders: early driving episodes move each herder's
-/// spawn along the line towards the flock's centroid, keeping only a share of its distance (but
-/// never nearer than the start circle plus the layout's herder clearance, where the simulator's
-/// own spawn keeps them). The share is drawn per episode uniformly from `[floor, 1]`, the floor
-/// rising linearly from `first_share` at progress 0 to 1 at `full_at_progress`. Why: herders
-/// spawn anywhere in the arena, up to 400 m from the flock, so random flight rarely finishes a
-/// drive and a seed can meet no success at all; near the flock it meets them early. Both ends of
-/// the line are inside the arena, so the moved herder is too. Evaluation never uses it.
+/// A start-state curriculum that moves spawned things along a line, keeping only a share of
+/// their distance; the share is drawn per episode uniformly from `[floor, 1]`, the floor rising
+/// linearly from `first_share` at progress 0 to 1 at `full_at_progress`. Both ends of the line
+/// are inside the arena, so what is moved stays in it. Evaluation never uses it. Two uses:
+///
+/// * driving's herders (`curriculum.driving_herder_distance`): each herder's spawn towards the
+///   flock's centroid, never nearer than the start circle plus the layout's herder clearance
+///   (`rollout::pull_herders`). Herders spawn anywhere in the arena, up to 400 m from the flock,
+///   so random flight rarely finishes a drive and a seed can meet no success at all.
+/// * collecting's targets (`curriculum.collecting_target_distance`): each scattered target
+///   towards the goal's centre, the share taken of its distance beyond the goal's edge
+///   (`rollout::pull_targets_to_goal`).
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
-pub struct HerderDistanceCurriculum {
-    /// The smallest share of each herder's distance to the flock, at progress 0 (1: off).
+pub struct SpawnShareCurriculum {
+    /// The smallest share of the distance kept, at progress 0 (1: off).
     pub first_share: f64,
-    /// The progress (fraction of `training.env_steps`) from which every driving episode spawns
-    /// its herders where the layout put them.
+    /// The progress (fraction of `training.env_steps`) from which every episode of the task
+    /// spawns where the layout put it.
     pub full_at_progress: f64,
 }
 
-impl Default for HerderDistanceCurriculum {
+impl Default for SpawnShareCurriculum {
     fn default() -> Self {
         Self {
             first_share: 1.0,
@@ -332,7 +336,7 @@ impl Default for HerderDistanceCurriculum {
     }
 }
 
-impl HerderDistanceCurriculum {
+impl SpawnShareCurriculum {
     /// The smallest share drawn at `progress`.
     pub fn floor_at(&self, progress: f64) -> f64 {
         GoalDistanceCurriculum {
@@ -354,8 +358,8 @@ impl Default for CurriculumConfig {
         CurriculumConfig {
             enabled: true,
             driving_goal_distance: GoalDistanceCurriculum::default(),
-            driving_herder_distance: HerderDistanceCurriculum::default(),
-            collecting_target_distance: HerderDistanceCurriculum::default(),
+            driving_herder_distance: SpawnShareCurriculum::default(),
+            collecting_target_distance: SpawnShareCurriculum::default(),
             stages: vec![
                 stage(0.0, &[2, 4, 8, 16], &[1, 2, 4]),
                 stage(0.25, &[4, 8, 16, 32, 64], &[1, 2, 4, 8, 0]),
@@ -1061,7 +1065,7 @@ mod tests {
         let mut same = twelfth.clone();
         same.output_dir = eleventh.output_dir.clone();
         same.training.task_reset_rule = TaskResetRule::BestSinceReset;
-        same.curriculum.collecting_target_distance = HerderDistanceCurriculum::default();
+        same.curriculum.collecting_target_distance = SpawnShareCurriculum::default();
         assert_eq!(same, eleventh);
         // The thirteenth differs from it only in collecting's shaping.
         let thirteenth =

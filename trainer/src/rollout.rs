@@ -43,7 +43,7 @@ pub struct Draw {
     /// ([`pull_targets_to_goal`]). An integer so that a draw stays `Eq`.
     pub goal_distance_permille: u16,
     /// Driving: the share of each herder's spawned distance to the flock kept, in thousandths
-    /// (1000: where the layout put it; see `HerderDistanceCurriculum`).
+    /// (1000: where the layout put it; see `SpawnShareCurriculum`).
     pub herder_distance_permille: u16,
 }
 
@@ -177,7 +177,8 @@ pub const PULLED_TARGET_MIN_BEYOND_EDGE_RADII: f64 = 0.2;
 /// `world` with each target outside the goal moved along the line towards the goal's centre,
 /// keeping `share` of its distance beyond the goal's edge but at least
 /// [`PULLED_TARGET_MIN_BEYOND_EDGE_RADII`] goal radii of it (a target already nearer stays where
-/// it is). The target stays inside the arena since both ends of the line are. The collecting curriculum's start states: scattered targets, but a shorter way to the goal.
+/// it is). The target stays inside the arena since both ends of the line are. The collecting
+/// curriculum's start states: scattered targets, but a shorter way to the goal.
 pub fn pull_targets_to_goal(world: &skyherd_sim::World, share: f64) -> skyherd_sim::World {
     let mut w = world.clone();
     let g = w.goal.center;
@@ -854,7 +855,7 @@ mod tests {
     #[test]
     fn the_collecting_curriculum_pulls_early_targets_towards_the_goal_and_lets_go_later() {
         let mut config = TrainConfig::default();
-        config.curriculum.collecting_target_distance = crate::config::HerderDistanceCurriculum {
+        config.curriculum.collecting_target_distance = crate::config::SpawnShareCurriculum {
             first_share: 0.2,
             full_at_progress: 0.5,
         };
@@ -929,7 +930,7 @@ mod tests {
     #[test]
     fn the_herder_distance_curriculum_spawns_early_driving_herders_near_the_flock() {
         let mut config = TrainConfig::default();
-        config.curriculum.driving_herder_distance = crate::config::HerderDistanceCurriculum {
+        config.curriculum.driving_herder_distance = crate::config::SpawnShareCurriculum {
             first_share: 0.0,
             full_at_progress: 0.5,
         };

@@ -1094,6 +1094,16 @@ mod tests {
         }
     }
 
+    /// An evaluation with each task at one success rate on N = 4 and 8.
+    fn eval(driving: f64, collecting: f64) -> Vec<EvalRow> {
+        vec![
+            row(Task::Driving, 4, driving),
+            row(Task::Driving, 8, driving),
+            row(Task::Collecting, 4, collecting),
+            row(Task::Collecting, 8, collecting),
+        ]
+    }
+
     #[test]
     fn a_task_is_reset_only_after_its_patience_without_success() {
         let t = crate::config::LoopConfig {
@@ -1103,17 +1113,11 @@ mod tests {
             ..crate::config::LoopConfig::default()
         };
         let tasks = Task::ALL;
-        let mut progress = Progress::default();
-        let eval = |driving: f64, collecting: f64| {
-            vec![
-                row(Task::Driving, 4, driving),
-                row(Task::Driving, 8, driving),
-                row(Task::Collecting, 4, collecting),
-                row(Task::Collecting, 8, collecting),
-            ]
-        };
         // 40k steps per task: patience not yet spent.
-        progress.env_steps = 80_000;
+        let mut progress = Progress {
+            env_steps: 80_000,
+            ..Progress::default()
+        };
         assert!(stalled_tasks(&t, &tasks, &mut progress, &eval(0.0, 0.5)).is_empty());
         // 50k per task: driving never reached 25 % and goes; collecting reached 50 % and stays
         // even though it has fallen to 0 since.
@@ -1152,19 +1156,15 @@ mod tests {
             task_reset_after_task_env_steps: 50_000,
             task_reset_below: 0.25,
             task_resets_max: 2,
-            task_reset_rule: crate::config::TaskResetRule::Recent,
+            task_reset_rule: TaskResetRule::Recent,
             ..crate::config::LoopConfig::default()
         };
         let tasks = Task::ALL;
-        let mut progress = Progress::default();
-        let eval = |driving: f64, collecting: f64| {
-            vec![
-                row(Task::Driving, 4, driving),
-                row(Task::Collecting, 4, collecting),
-            ]
-        };
         // 25k per task: collecting passes (at the bar exactly), driving does not.
-        progress.env_steps = 50_000;
+        let mut progress = Progress {
+            env_steps: 50_000,
+            ..Progress::default()
+        };
         assert!(stalled_tasks(&t, &tasks, &mut progress, &eval(0.0, 0.25)).is_empty());
         assert_eq!(progress.task_last_pass_env_steps, [0, 50_000]);
         // 50k per task: driving has never passed and goes, as under the other rule;
@@ -1189,7 +1189,7 @@ mod tests {
         assert!(stalled_tasks(&t, &tasks, &mut progress, &eval(0.0, 0.5)).is_empty());
         let mut best = progress;
         let keep = crate::config::LoopConfig {
-            task_reset_rule: crate::config::TaskResetRule::BestSinceReset,
+            task_reset_rule: TaskResetRule::BestSinceReset,
             ..t.clone()
         };
         best.env_steps = 400_000;
