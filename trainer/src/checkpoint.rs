@@ -73,6 +73,11 @@ pub struct Progress {
     /// from here. Older checkpoints read as none.
     #[serde(default)]
     pub task_last_pass_env_steps: [u64; 2],
+    /// Each task's mean held-out success at its latest evaluation (0 before the first, and
+    /// after a reset): what `training.passed_task_update_share` reads. Older checkpoints read
+    /// as none.
+    #[serde(default)]
+    pub task_latest_success: [f64; 2],
 }
 
 /// Everything a checkpoint holds.
@@ -488,6 +493,7 @@ mod tests {
             task_reset_env_steps: [600, 0],
             task_best_since_reset: [0.125, 0.5],
             task_last_pass_env_steps: [900, 1200],
+            task_latest_success: [0.375, 1.0],
         };
         let original = Checkpoint {
             agent,
@@ -572,5 +578,6 @@ mod tests {
         assert_eq!(p.task_resets, [0, 0]);
         assert_eq!(p.task_reset_env_steps, [0, 0]);
         assert_eq!(p.task_last_pass_env_steps, [0, 0]);
+        assert_eq!(p.task_latest_success, [0.0, 0.0]);
     }
 }

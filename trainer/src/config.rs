@@ -658,6 +658,16 @@ pub struct LoopConfig {
     pub task_reset_warmup_steps: u64,
     /// Which evaluations the patience reads ([`TaskResetRule`]).
     pub task_reset_rule: TaskResetRule,
+    /// Updates go where learning is left: while some trained task's latest training-time
+    /// evaluation is below `passed_task_bar` mean success, a task at or above it has its
+    /// minibatch in only this share of the updates, and the updates per env step rise so that
+    /// the minibatch rows per env step (the update compute) stay as configured. The other
+    /// tasks get the updates a learned one no longer needs. Needs `eval.every_task_env_steps`.
+    /// 1: off (every update holds every task's minibatch).
+    pub passed_task_update_share: f64,
+    /// The mean held-out success (over the task's evaluation scenarios, at its latest
+    /// evaluation) at which a task counts as learned for `passed_task_update_share`.
+    pub passed_task_bar: f64,
 }
 
 /// Which evaluations decide that a task has stalled ([`LoopConfig::task_reset_after_task_env_steps`]).
@@ -742,6 +752,8 @@ impl Default for LoopConfig {
             task_reset_clears_replay: false,
             task_reset_warmup_steps: 0,
             task_reset_rule: TaskResetRule::BestSinceReset,
+            passed_task_update_share: 1.0,
+            passed_task_bar: 0.95,
         }
     }
 }
@@ -932,6 +944,18 @@ impl TrainConfig {
                 );
             }
         }
+        if !(t.passed_task_update_share > 0.0 && t.passed_task_update_share <= 1.0) {
+            return bad("training.passed_task_update_share", "must be in (0, 1]");
+        }
+        if !(t.passed_task_bar > 0.0 && t.passed_task_bar <= 1.0) {
+            return bad("training.passed_task_bar", "must be in (0, 1]");
+        }
+        if t.passed_task_update_share < 1.0 && self.eval.every_task_env_steps == 0 {
+            return bad(
+                "training.passed_task_update_share",
+                "needs eval.every_task_env_steps above 0 (it reads each task's evaluations)",
+            );
+        }
         let g = &self.curriculum.driving_goal_distance;
         if !(g.first_share > 0.0 && g.first_share <= 1.0) {
             return bad(
@@ -1077,6 +1101,40 @@ mod tests {
         same.reward.audited.shaping_form = crate::reward::ShapingForm::Potential;
         assert_eq!(same, twelfth);
         assert_eq!(thirteenth.reward.audited.shaping, 5.0);
+        // The fourteenth differs from it only in where the updates go.
+        let fourteenth =
+            TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch14.toml"))
+                .expect("the fourteenth config parses");
+        assert_eq!(fourteenth.training.passed_task_update_share, 0.25);
+        assert_eq!(fourteenth.training.passed_task_bar, 0.95);
+        let mut same = fourteenth.clone();
+        same.output_dir = twelfth.output_dir.clone();
+        same.training.passed_task_update_share = 1.0;
+        assert_eq!(same, twelfth);
+        let text14 = include_str!("../configs/mtddpg-scratch14.toml");
+        for (from, to, key) in [
+            (
+                "passed_task_update_share = 0.25",
+                "passed_task_update_share = 0.0",
+                "training.passed_task_update_share",
+            ),
+            (
+                "passed_task_bar = 0.95",
+                "passed_task_bar = 1.5",
+                "training.passed_task_bar",
+            ),
+            (
+                "every_task_env_steps = 25_000",
+                "every_task_env_steps = 0",
+                "eval.every_task_env_steps",
+            ),
+        ] {
+            assert!(text14.contains(from), "{from}");
+            let e = TrainConfig::from_toml_str(&text14.replace(from, to))
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(key), "{key}: {e}");
+        }
         let text = include_str!("../configs/mtddpg-scratch12.toml");
         for (from, to, key) in [
             (

@@ -353,6 +353,66 @@ fn sample_per_task(
     }
 }
 
+/// Each task's share of the updates under `training.passed_task_update_share`: 1 for every
+/// task, except that while some trained task's latest evaluation (`latest`, mean success per
+/// `Task::index`) is below `passed_task_bar`, a trained task at or above it gets the share.
+/// Tasks not trained get 0. Pure.
+pub(crate) fn update_shares(
+    t: &crate::config::LoopConfig,
+    tasks: &[Task],
+    latest: &[f64; Task::COUNT],
+) -> [f64; Task::COUNT] {
+    let passed = |task: &Task| latest[task.index()] >= t.passed_task_bar;
+    let focus = tasks.iter().any(passed) && !tasks.iter().all(passed);
+    let mut shares = [0.0; Task::COUNT];
+    for task in tasks {
+        shares[task.index()] = if focus && passed(task) {
+            t.passed_task_update_share
+        } else {
+            1.0
+        };
+    }
+    shares
+}
+
+/// Which tasks' minibatches go into updates under `shares` (see [`update_shares`]): each
+/// task's credit grows by its share per update and it takes part whenever a whole one has
+/// built up, so a share of 0.25 is every fourth update, spread evenly. Deterministic.
+#[derive(Clone, Copy, Debug, Default)]
+pub(crate) struct UpdateTurns {
+    credit: [f64; Task::COUNT],
+}
+
+impl UpdateTurns {
+    /// The next update's tasks.
+    pub(crate) fn next(&mut self, shares: &[f64; Task::COUNT]) -> [bool; Task::COUNT] {
+        let mut take = [false; Task::COUNT];
+        for (i, share) in shares.iter().enumerate() {
+            self.credit[i] = (self.credit[i] + share).min(1.0 + share);
+            // A tolerance, so that four shares of 0.25 make a whole turn despite rounding.
+            if self.credit[i] >= 1.0 - 1e-9 {
+                self.credit[i] -= 1.0;
+                take[i] = true;
+            }
+        }
+        take
+    }
+}
+
+/// Updates per env step that keep the minibatch rows per env step as configured when tasks
+/// take part in only `shares` of the updates: `updates_per_env_step * tasks / sum(shares)`.
+pub(crate) fn focused_updates_per_env_step(
+    updates_per_env_step: f64,
+    tasks: &[Task],
+    shares: &[f64; Task::COUNT],
+) -> f64 {
+    let total: f64 = tasks.iter().map(|t| shares[t.index()]).sum();
+    if total <= 0.0 {
+        return updates_per_env_step;
+    }
+    updates_per_env_step * tasks.len() as f64 / total
+}
+
 /// One buffer per task; `others` > 0 keeps that many other herders per transition for the
 /// centralised critic.
 fn new_buffers(width: usize, capacity: usize, others: usize) -> Vec<ReplayBuffer> {
@@ -449,6 +509,11 @@ impl Run<'_> {
             per_task,
             &rows,
         )?;
+        for &task in &self.config.training.tasks {
+            if let Some(success) = task_success(&rows, task) {
+                self.progress.task_latest_success[task.index()] = success;
+            }
+        }
         self.last_eval = rows;
         Ok(())
     }
@@ -467,6 +532,8 @@ impl Run<'_> {
                     ^ u64::from(self.progress.task_resets[i]),
             );
             self.agent.reset_task(i, &mut rng);
+            // Started over: not learned, whatever its last evaluation said.
+            self.progress.task_latest_success[i] = 0.0;
             if t.task_reset_clears_replay {
                 self.replay[i].clear();
             }
@@ -591,6 +658,7 @@ impl Run<'_> {
         let mut demo_batches = vec![Batch::default(); Task::COUNT];
         let mut recent = Recent { window: Vec::new() };
         let mut updates_owed = 0.0_f64;
+        let mut turns = UpdateTurns::default();
         let mut last_checkpoint = Instant::now();
         let mut last_log = Instant::now();
         let mut update_time = 0.0_f64;
@@ -640,7 +708,9 @@ impl Run<'_> {
 
             let stored: u64 = self.replay.iter().map(|b| b.len() as u64).sum();
             if stored >= t.learning_starts {
-                updates_owed += stepped as f64 * t.updates_per_env_step;
+                let shares = update_shares(t, &t.tasks, &self.progress.task_latest_success);
+                updates_owed += stepped as f64
+                    * focused_updates_per_env_step(t.updates_per_env_step, &t.tasks, &shares);
                 while updates_owed >= 1.0 {
                     updates_owed -= 1.0;
                     let tick = Instant::now();
@@ -650,6 +720,16 @@ impl Run<'_> {
                         &mut self.rng,
                         &mut batches,
                     );
+                    // A task sitting this update out contributes no rows, unless no task
+                    // taking part has any (a reset task's emptied replay refilling).
+                    let take = turns.next(&shares);
+                    if batches.iter().zip(take).any(|(b, take)| take && b.size > 0) {
+                        for (batch, take) in batches.iter_mut().zip(take) {
+                            if !take {
+                                batch.size = 0;
+                            }
+                        }
+                    }
                     if imitation_weight > 0.0 {
                         sample_per_task(
                             &self.demos,
@@ -1148,6 +1228,52 @@ mod tests {
             ..Progress::default()
         };
         assert!(stalled_tasks(&off, &tasks, &mut fresh, &eval(0.0, 0.0)).is_empty());
+    }
+
+    #[test]
+    fn a_learned_task_gives_its_updates_to_the_unlearned_one_at_the_same_compute() {
+        let t = crate::config::LoopConfig {
+            passed_task_update_share: 0.25,
+            passed_task_bar: 0.95,
+            ..crate::config::LoopConfig::default()
+        };
+        let both = Task::ALL;
+        let (d, c) = (Task::Driving.index(), Task::Collecting.index());
+        let at = |driving: f64, collecting: f64| {
+            let mut latest = [0.0; Task::COUNT];
+            latest[d] = driving;
+            latest[c] = collecting;
+            update_shares(&t, &both, &latest)
+        };
+        // Neither or both learned: every update holds both tasks.
+        assert_eq!(at(0.5, 0.2), [1.0, 1.0]);
+        assert_eq!(at(1.0, 0.96), [1.0, 1.0]);
+        // Driving at the bar exactly, collecting below: driving sits three updates in four out.
+        let shares = at(0.95, 0.9);
+        assert_eq!((shares[d], shares[c]), (0.25, 1.0));
+        // ... and the updates per env step rise so that the rows stay: 2 / 1.25 of 0.5.
+        let per_step = focused_updates_per_env_step(0.5, &both, &shares);
+        assert!((per_step - 0.8).abs() < 1e-12, "{per_step}");
+        let mut turns = UpdateTurns::default();
+        let taken: Vec<[bool; Task::COUNT]> = (0..8).map(|_| turns.next(&shares)).collect();
+        assert!(taken.iter().all(|take| take[c]));
+        let driving_turns: Vec<usize> = (0..8).filter(|&u| taken[u][d]).collect();
+        assert_eq!(driving_turns, vec![3, 7], "every fourth update, evenly");
+        let rows_per_step = per_step * taken.iter().flatten().filter(|&&x| x).count() as f64 / 8.0;
+        assert!(
+            (rows_per_step - 1.0).abs() < 1e-12,
+            "two tasks' rows at 0.5 updates a step"
+        );
+        // The single-task arm has nothing to give: the other task is not trained.
+        let one = update_shares(&t, &[Task::Driving], &[1.0, 0.0]);
+        assert_eq!((one[d], one[c]), (1.0, 0.0));
+        assert_eq!(
+            focused_updates_per_env_step(0.5, &[Task::Driving], &one),
+            0.5
+        );
+        // Off (the default): full shares whatever the evaluations say.
+        let off = crate::config::LoopConfig::default();
+        assert_eq!(update_shares(&off, &both, &[1.0, 0.0]), [1.0, 1.0]);
     }
 
     #[test]
