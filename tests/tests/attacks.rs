@@ -311,10 +311,15 @@ fn indoor(label: &str, extra: &[&str], flood: bool) -> Mission {
     });
     let start = Instant::now();
     while sitl.0.try_wait().expect("wait").is_none() {
-        assert!(
-            start.elapsed() < Duration::from_secs(120),
-            "the mission did not end"
-        );
+        if start.elapsed() > Duration::from_secs(120) {
+            // What the mission said and each process's log, or a hang cannot be diagnosed.
+            let _ = sitl.0.kill();
+            let _ = sitl.0.wait();
+            panic!(
+                "the {label} mission did not end within 120 s\n{}",
+                leftovers(&console, &out)
+            );
+        }
         std::thread::sleep(Duration::from_millis(50));
     }
     let result = std::fs::read_to_string(out.join("result.json")).expect("result.json");
@@ -326,6 +331,41 @@ fn indoor(label: &str, extra: &[&str], flood: bool) -> Mission {
         console: console_text,
         flood,
     }
+}
+
+/// The console and the tail of every log in `out`, for a failure message.
+fn leftovers(console: &Path, out: &Path) -> String {
+    // The first and last lines: how the mission started, and where it stood.
+    let tail = |text: String| {
+        let lines: Vec<&str> = text.lines().collect();
+        if lines.len() <= 60 {
+            return lines.join("\n");
+        }
+        format!(
+            "{}\n[...]\n{}",
+            lines[..30].join("\n"),
+            lines[lines.len() - 30..].join("\n")
+        )
+    };
+    let mut report = format!(
+        "--- console\n{}",
+        tail(std::fs::read_to_string(console).unwrap_or_default())
+    );
+    let mut logs: Vec<PathBuf> = std::fs::read_dir(out)
+        .map(|entries| entries.flatten().map(|e| e.path()).collect())
+        .unwrap_or_default();
+    logs.sort();
+    for log in logs
+        .iter()
+        .filter(|p| p.extension().is_some_and(|e| e == "log"))
+    {
+        report.push_str(&format!(
+            "\n--- {}\n{}",
+            log.display(),
+            tail(std::fs::read_to_string(log).unwrap_or_default())
+        ));
+    }
+    report
 }
 
 /// Row 3: 8,000 zero-byte datagrams to drone 1's uplink port during the indoor mission (in

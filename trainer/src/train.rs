@@ -659,6 +659,8 @@ impl Run<'_> {
         let mut recent = Recent { window: Vec::new() };
         let mut updates_owed = 0.0_f64;
         let mut turns = UpdateTurns::default();
+        // Full shares are where every run starts; only a change is worth a note.
+        let mut last_shares = update_shares(t, &t.tasks, &[0.0; Task::COUNT]);
         let mut last_checkpoint = Instant::now();
         let mut last_log = Instant::now();
         let mut update_time = 0.0_f64;
@@ -709,6 +711,17 @@ impl Run<'_> {
             let stored: u64 = self.replay.iter().map(|b| b.len() as u64).sum();
             if stored >= t.learning_starts {
                 let shares = update_shares(t, &t.tasks, &self.progress.task_latest_success);
+                if shares != last_shares {
+                    last_shares = shares;
+                    observer.note(&format!(
+                        "update shares: {}",
+                        t.tasks
+                            .iter()
+                            .map(|task| format!("{} {:.2}", task_name(*task), shares[task.index()]))
+                            .collect::<Vec<_>>()
+                            .join(", ")
+                    ));
+                }
                 updates_owed += stepped as f64
                     * focused_updates_per_env_step(t.updates_per_env_step, &t.tasks, &shares);
                 while updates_owed >= 1.0 {

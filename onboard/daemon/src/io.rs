@@ -516,6 +516,24 @@ pub struct Daemon<P> {
     snapshots_keep_pace: bool,
 }
 
+/// Work on the control thread that takes longer than this (wall time) is logged: the
+/// setpoint stream must not pause near PX4's setpoint-loss timeout (`COM_OF_LOSS_T`, 1 s).
+const SLOW_WORK_WARNING: Duration = Duration::from_millis(200);
+
+/// A gap between two autopilot positions this long (wall time) is logged.
+const POSITION_GAP_WARNING: Duration = Duration::from_millis(500);
+
+/// Logs `what` when it took longer than [`SLOW_WORK_WARNING`] since `started`.
+fn warn_if_slow(what: &str, started: Instant) {
+    let took = started.elapsed();
+    if took >= SLOW_WORK_WARNING {
+        warn!(
+            "control thread: {what} took {} ms of wall time",
+            took.as_millis()
+        );
+    }
+}
+
 /// How long reader threads block before looking at the stop flag.
 const READ_TIMEOUT: Duration = Duration::from_millis(100);
 
@@ -857,10 +875,12 @@ impl<P: OnboardPolicy> Daemon<P> {
         // killed (SIGKILL) a moment into a fast lockstep mission still leaves its state.
         let mut last_state_save: Option<Instant> = None;
         while !self.stop.load(Ordering::Relaxed) {
-            if last_state_save.is_none_or(|t| t.elapsed() >= Duration::from_secs(1))
-                && self.save_replay_state()
-            {
-                last_state_save = Some(Instant::now());
+            if last_state_save.is_none_or(|t| t.elapsed() >= Duration::from_secs(1)) {
+                let writing = Instant::now();
+                if self.save_replay_state() {
+                    last_state_save = Some(Instant::now());
+                    warn_if_slow("writing the replay state", writing);
+                }
             }
             let wait = match self.clock {
                 ClockMode::Wall { .. } => next_tick.since(wall_now()).min(READ_TIMEOUT),
@@ -903,10 +923,14 @@ impl<P: OnboardPolicy> Daemon<P> {
                 if let Some(t) = position_time {
                     now = now.max(t);
                 }
+                let handling = Instant::now();
                 self.handle(now, event);
+                warn_if_slow("handling a message", handling);
                 if position_time.is_some() {
                     self.await_snapshot_of(now);
+                    let ticking = Instant::now();
                     self.tick(now);
+                    warn_if_slow("the control tick", ticking);
                     // Ends the lockstep answer to every position, whatever the tick decided
                     // (sent after its setpoint and command, on the same link): the simulator
                     // waits for it before the next step, so even the pre-flight (idle,
@@ -1022,6 +1046,16 @@ impl<P: OnboardPolicy> Daemon<P> {
                 self.request_positions_if_silent();
             }
             MavMessage::LOCAL_POSITION_NED(p) => {
+                // A silence the autopilot's setpoint-loss failsafe (PX4: 1 s) could notice.
+                if let Some(gap) = self.position_heard_at.map(|t| t.elapsed())
+                    && gap >= POSITION_GAP_WARNING
+                    && self.core.own_position().is_some()
+                {
+                    warn!(
+                        "autopilot position after {} ms without one",
+                        gap.as_millis()
+                    );
+                }
                 self.position_heard_at = Some(Instant::now());
                 self.counters.autopilot.received += 1;
                 self.core.on_local_position(now, [p.x, p.y, p.z]);
