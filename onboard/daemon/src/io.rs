@@ -386,10 +386,65 @@ pub fn load_replay_state(path: &std::path::Path, now: SigningTime) -> Result<Rep
 
 /// Writes the replay state to `path` whole: a temporary file beside it, then a rename, so that
 /// a crash mid-write leaves the previous state.
+#[cfg(test)]
 fn save_replay_state(path: &std::path::Path, guard: &ReplayGuard) -> io::Result<()> {
+    write_state_file(path, &guard.to_bytes())
+}
+
+/// `bytes` to `path` through a temporary file and a rename, so that a crash mid-write leaves
+/// the old state, never half of the new.
+fn write_state_file(path: &std::path::Path, bytes: &[u8]) -> io::Result<()> {
     let tmp = path.with_extension("tmp");
-    std::fs::write(&tmp, guard.to_bytes())?;
+    std::fs::write(&tmp, bytes)?;
     std::fs::rename(&tmp, path)
+}
+
+/// Writes the replay state file on a thread of its own. On the control thread the write
+/// stalled the setpoint stream: under writeback pressure (a large build writing gigabytes)
+/// the kernel throttles every writer, and one 32-byte write and rename took 680 ms, near
+/// PX4's 1 s setpoint-loss timeout; two daemons stalled together lost OFFBOARD mid-mission.
+/// Only the newest state matters, so states queued behind a slow write are skipped.
+struct StateWriter {
+    sender: Sender<Vec<u8>>,
+    thread: Option<thread::JoinHandle<()>>,
+}
+
+impl StateWriter {
+    fn spawn(path: std::path::PathBuf) -> Self {
+        let (sender, receiver) = mpsc::channel::<Vec<u8>>();
+        let body = move || {
+            while let Ok(mut bytes) = receiver.recv() {
+                while let Ok(newer) = receiver.try_recv() {
+                    bytes = newer;
+                }
+                if let Err(e) = write_state_file(&path, &bytes) {
+                    warn!("cannot write the replay state {}: {e}", path.display());
+                }
+            }
+        };
+        let thread = thread::Builder::new()
+            .name("replay-state-writer".into())
+            .spawn(body)
+            .map_err(|e| warn!("cannot start the replay state writer: {e}"))
+            .ok();
+        Self { sender, thread }
+    }
+
+    /// Queues `bytes` for writing; returns at once.
+    fn save(&self, bytes: Vec<u8>) {
+        // A writer thread that could not start leaves nothing to send to: the state in
+        // memory still guards this run.
+        let _ = self.sender.send(bytes);
+    }
+
+    /// Writes what is queued and ends the thread.
+    fn finish(self) {
+        let Self { sender, thread } = self;
+        drop(sender);
+        if let Some(thread) = thread {
+            let _ = thread.join();
+        }
+    }
 }
 
 /// The daemon's time in lockstep mode, from the autopilot's `time_boot_ms`, kept monotonic
@@ -498,7 +553,8 @@ pub struct Daemon<P> {
     ground_peer: Option<SocketAddr>,
     /// Refused frames per sender this second.
     rejects: RejectBudget,
-    replay_state: Option<std::path::PathBuf>,
+    /// Writes the replay state file off the control thread (`None`: no file).
+    state_writer: Option<StateWriter>,
     ground_local: Option<SocketAddr>,
     autopilot_local: Option<SocketAddr>,
     events: Receiver<Event>,
@@ -820,7 +876,7 @@ impl<P: OnboardPolicy> Daemon<P> {
             ground,
             ground_peer: None,
             rejects: RejectBudget::default(),
-            replay_state: options.replay_state.clone(),
+            state_writer: options.replay_state.clone().map(StateWriter::spawn),
             ground_local,
             autopilot_local,
             events: rx,
@@ -953,6 +1009,10 @@ impl<P: OnboardPolicy> Daemon<P> {
             }
         }
         let _ = self.save_replay_state();
+        // The last state is on disk before the daemon says it stops.
+        if let Some(writer) = self.state_writer.take() {
+            writer.finish();
+        }
         info!(
             "stopping; counters: {:?}; core: {:?}",
             self.counters(),
@@ -991,11 +1051,11 @@ impl<P: OnboardPolicy> Daemon<P> {
         self.snapshots_keep_pace = true;
     }
 
-    /// Writes the replay state when it changed (a failure is logged: flying on beats stopping,
-    /// and the state in memory still guards this run).
-    /// Returns whether it wrote (or tried to write) the file.
+    /// Hands the replay state to the writer thread when it changed (a failed write is logged
+    /// there: flying on beats stopping, and the state in memory still guards this run).
+    /// Returns whether it handed one over.
     fn save_replay_state(&mut self) -> bool {
-        let Some(path) = &self.replay_state else {
+        let Some(writer) = &self.state_writer else {
             return false;
         };
         let Some(guard) = self.gate.replay_state() else {
@@ -1004,13 +1064,9 @@ impl<P: OnboardPolicy> Daemon<P> {
         if !guard.is_dirty() {
             return false;
         }
-        match save_replay_state(path, guard) {
-            Ok(()) => {
-                if let Some(guard) = self.gate.replay_state_mut() {
-                    guard.mark_saved();
-                }
-            }
-            Err(e) => warn!("cannot write the replay state {}: {e}", path.display()),
+        writer.save(guard.to_bytes());
+        if let Some(guard) = self.gate.replay_state_mut() {
+            guard.mark_saved();
         }
         true
     }

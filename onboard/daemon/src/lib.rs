@@ -53,6 +53,7 @@
 
 pub mod control;
 pub mod io;
+pub mod log_queue;
 pub mod selftest;
 
 #[cfg(test)]

@@ -14,6 +14,7 @@ use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand, ValueEnum};
 use skyherd_daemon::control::{CoreConfig, DaemonCore};
 use skyherd_daemon::io::{ClockMode, Daemon, LinkOptions};
+use skyherd_daemon::log_queue::LogQueue;
 use skyherd_daemon::selftest;
 use skyherd_link::Flavour;
 use skyherd_link::SigningKey;
@@ -283,9 +284,27 @@ fn main() -> Result<()> {
         Command::Run(_) => "info",
         Command::SelfTest { .. } => "error",
     };
+    // Log lines reach stderr through a queue (skyherd_daemon::log_queue): a log file under
+    // writeback pressure must not stall the control thread that logs.
+    let (queued_stderr, log_writer) = LogQueue::spawn(std::io::stderr(), LOG_QUEUE_LINES);
     env_logger::Builder::from_env(env_logger::Env::default().default_filter_or(default_level))
+        .target(env_logger::Target::Pipe(Box::new(queued_stderr)))
         .init();
-    match cli.command {
+    let result = run_command(cli.command);
+    // The logger keeps its end of the queue for the process's life: what is queued is
+    // written before the process ends.
+    log_writer.wait_written(LOG_DRAIN);
+    result
+}
+
+/// Log lines queued at most before new ones are dropped (and counted).
+const LOG_QUEUE_LINES: usize = 4096;
+
+/// How long an ending daemon waits at most for its log writer to catch up.
+const LOG_DRAIN: std::time::Duration = std::time::Duration::from_secs(2);
+
+fn run_command(command: Command) -> Result<()> {
+    match command {
         Command::Run(args) => run(*args),
         Command::SelfTest { model } => {
             let file = match &model {
