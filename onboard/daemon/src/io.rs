@@ -1452,6 +1452,27 @@ mod tests {
     }
 
     #[test]
+    fn the_state_writer_leaves_the_newest_state_on_disk_when_it_finishes() {
+        let dir = std::env::temp_dir().join(format!("skyherd-state-writer-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).expect("scratch folder");
+        let path = dir.join("uplink.replay");
+        let writer = StateWriter::spawn(path.clone());
+        for bytes in [b"first".to_vec(), b"second".to_vec(), b"newest".to_vec()] {
+            writer.save(bytes);
+        }
+        writer.finish();
+        assert_eq!(std::fs::read(&path).expect("written"), b"newest");
+        // No temporary file is left beside it.
+        assert!(!path.with_extension("tmp").exists());
+        // A folder that cannot be written is logged by the writer, not a panic or a stall.
+        let writer = StateWriter::spawn(dir.join("missing").join("uplink.replay"));
+        writer.save(b"lost".to_vec());
+        writer.finish();
+        std::fs::remove_dir_all(&dir).ok();
+    }
+
+    #[test]
     fn a_replayed_frame_is_refused() {
         let mut gate = UplinkGate::new(Some(KEY), now());
         let frame = signed_by(KEY);
