@@ -1111,6 +1111,16 @@ mod tests {
         same.output_dir = twelfth.output_dir.clone();
         same.training.passed_task_update_share = 1.0;
         assert_eq!(same, twelfth);
+        // The fifteenth differs from it only in collecting's straggler weight.
+        let fifteenth =
+            TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch15.toml"))
+                .expect("the fifteenth config parses");
+        assert_eq!(fifteenth.reward.audited.straggler, 1.0);
+        assert_eq!(fifteenth.reward.audited_driving.as_ref().map(|d| d.straggler), Some(0.0));
+        let mut same = fifteenth.clone();
+        same.output_dir = twelfth.output_dir.clone();
+        same.reward.audited.straggler = 0.0;
+        assert_eq!(same, twelfth);
         let text14 = include_str!("../configs/mtddpg-scratch14.toml");
         for (from, to, key) in [
             (

@@ -19,7 +19,8 @@
 //!         - flight_cost |v_h| / v_max                    this herder's own flight, not the team's
 //!         + success_bonus                                when every target is in the goal
 //!         - leave_penalty_horizons / (1 - gamma)         once, when anything leaves the arena
-//!   Phi(s) = - mean over targets of max(0, |p - g| - R) / R,   0 in a terminal state
+//!   Phi(s) = - mean over targets of max(0, |p - g| - R) / R     0 in a terminal state
+//!            - straggler * max over targets of max(0, |p - g| - R) / R
 //!   ```
 //!
 //!   Hovering forever is worth `-time_cost / (1 - gamma)`; an episode that succeeds at step
@@ -75,6 +76,12 @@ pub struct AuditedReward {
     /// Added to the team's terms, so a herder pushing the flock the wrong way is told so even
     /// when the others' pushes outweigh it. 0: off.
     pub credit: f64,
+    /// Weight of the farthest target's distance beyond the goal edge in the potential, beside
+    /// the mean's ([`flock_potential`]). An episode ends when its last target is in, but the
+    /// mean gives that straggler only 1/N of the potential, as much as any target in a clump
+    /// near the goal. Shaping and difference credit both read this potential. 0: off (older
+    /// configs train as before).
+    pub straggler: f64,
 }
 
 impl Default for AuditedReward {
@@ -88,6 +95,7 @@ impl Default for AuditedReward {
             success_bonus: 10.0,
             leave_penalty_horizons: 2.0,
             credit: 0.0,
+            straggler: 0.0,
         }
     }
 }
@@ -110,19 +118,29 @@ pub enum ShapingForm {
 }
 
 /// The potential of a world: minus the targets' mean distance beyond the goal edge, in goal
-/// radii (0 when every target is inside).
+/// radii (0 when every target is inside). [`flock_potential`] with no straggler weight.
 pub fn potential(world: &World) -> f64 {
+    flock_potential(world, 0.0)
+}
+
+/// Minus the targets' mean distance beyond the goal edge and `straggler` times the farthest
+/// one's, in goal radii (0 when every target is inside, and with no targets).
+pub fn flock_potential(world: &World, straggler: f64) -> f64 {
     if world.targets.is_empty() {
         return 0.0;
     }
     let [cx, cy] = world.goal.center;
     let r = world.goal.radius.max(1e-9);
-    let outside: f64 = world
+    let (sum, farthest) = world
         .targets
         .iter()
         .map(|p| (((p[0] - cx).powi(2) + (p[1] - cy).powi(2)).sqrt() - r).max(0.0) / r)
-        .sum();
-    -outside / world.targets.len() as f64
+        .fold((0.0, 0.0_f64), |(sum, farthest), d| (sum + d, farthest.max(d)));
+    let mut phi = -sum / world.targets.len() as f64;
+    if straggler != 0.0 {
+        phi -= straggler * farthest;
+    }
+    phi
 }
 
 /// Herder `h`'s approach potential: minus its ground distance to the nearest target, in goal
@@ -162,10 +180,17 @@ pub struct CreditScratch {
 /// reward through the noise of the others' actions; this credit gives it that part directly
 /// (the difference reward of Wolpert and Tumer 2002, with the simulator as the counterfactual).
 ///
+/// The potential is [`flock_potential`] with weight `straggler` on the farthest target.
+///
 /// All zeros when `env` does not keep its last step or has taken none this episode.
-pub fn difference_credits(env: &Env, scratch: &mut CreditScratch, out: &mut Vec<f64>) {
+pub fn difference_credits(
+    env: &Env,
+    straggler: f64,
+    scratch: &mut CreditScratch,
+    out: &mut Vec<f64>,
+) {
     let after = env.world();
-    let actual = potential(after);
+    let actual = flock_potential(after, straggler);
     let m = after.herders.len();
     out.clear();
     out.resize(m, 0.0);
@@ -173,7 +198,7 @@ pub fn difference_credits(env: &Env, scratch: &mut CreditScratch, out: &mut Vec<
     for (h, credit) in out.iter_mut().enumerate() {
         // Only an index past the herders could fail, and `h` is not one.
         if let Ok(true) = env.replay_last_step_without(h, world, &mut scratch.replay) {
-            *credit = actual - potential(world);
+            *credit = actual - flock_potential(world, straggler);
         }
     }
 }
@@ -231,7 +256,7 @@ impl LearnerReward {
             env.keep_last_step(true);
         }
         let world = env.world();
-        self.potential = potential(world);
+        self.potential = flock_potential(world, self.weights.straggler);
         self.approach = (0..world.herders.len())
             .map(|h| approach_potential(world, h))
             .collect();
@@ -261,8 +286,8 @@ impl LearnerReward {
                 let a = &self.weights;
                 let (next, discount) = match a.shaping_form {
                     ShapingForm::Potential if outcome.terminated => (0.0, self.gamma),
-                    ShapingForm::Potential => (potential(after), self.gamma),
-                    ShapingForm::Progress => (potential(after), 1.0),
+                    ShapingForm::Potential => (flock_potential(after, a.straggler), self.gamma),
+                    ShapingForm::Progress => (flock_potential(after, a.straggler), 1.0),
                 };
                 let mut team = -a.time_cost + a.shaping * (discount * next - self.potential);
                 if outcome.success {
@@ -276,7 +301,12 @@ impl LearnerReward {
                 let terminated = outcome.terminated;
                 self.approach.resize(velocities.len(), 0.0);
                 if a.credit != 0.0 {
-                    difference_credits(env, &mut self.credit_scratch, &mut self.credits);
+                    difference_credits(
+                        env,
+                        a.straggler,
+                        &mut self.credit_scratch,
+                        &mut self.credits,
+                    );
                 } else {
                     self.credits.clear();
                 }
@@ -328,6 +358,7 @@ mod tests {
                 success_bonus: 0.0,
                 leave_penalty_horizons: 0.0,
                 credit: 0.0,
+                straggler: 0.0,
             },
             ..RewardConfig::default()
         }
@@ -375,6 +406,57 @@ mod tests {
                 "{discounted} vs {expected}"
             );
             assert!(first < 0.0, "targets start outside the goal");
+        }
+    }
+
+    #[test]
+    fn the_straggler_weight_adds_the_farthest_targets_distance_and_still_telescopes() {
+        let (env, _) = flock_world(vec![[138.0, 138.0, 2.0], [480.0, 20.0, 2.0]]);
+        let world = env.world();
+        let r = world.goal.radius;
+        let excess: Vec<f64> = world
+            .targets
+            .iter()
+            .map(|p| ((p[0] - 250.0).hypot(p[1] - 250.0) - r).max(0.0) / r)
+            .collect();
+        let mean = excess.iter().sum::<f64>() / excess.len() as f64;
+        let farthest = excess.iter().copied().fold(0.0, f64::max);
+        assert!(farthest > mean && mean > 0.0);
+        assert_eq!(flock_potential(world, 0.0), potential(world));
+        assert!((potential(world) + mean).abs() < 1e-12);
+        assert!((flock_potential(world, 2.0) + mean + 2.0 * farthest).abs() < 1e-12);
+
+        // The shaping on it still telescopes over a whole episode.
+        let gamma = 0.97;
+        let mut config = audited(1.0, 0.0);
+        config.audited.straggler = 2.0;
+        let scenario = scenario();
+        for velocity in [[0.0; 3], [3.0, -2.0, 0.0]] {
+            let mut env = Env::new(scenario.clone()).unwrap();
+            let mut reward = LearnerReward::new(&config, gamma, &scenario);
+            env.reset(5);
+            reward.start(&mut env);
+            let first = flock_potential(env.world(), 2.0);
+            assert!(first < potential(env.world()), "the straggler counts twice more");
+            let (mut discounted, mut t, mut r) = (0.0, 0, Vec::new());
+            let last = loop {
+                let velocities = vec![velocity; env.world().herders.len()];
+                let out = env.step(&velocities).unwrap();
+                reward.step(&out, &env, &velocities, &mut r);
+                discounted += gamma.powi(t) * f64::from(r[0]);
+                t += 1;
+                if out.terminated {
+                    break 0.0;
+                }
+                if out.truncated {
+                    break flock_potential(env.world(), 2.0);
+                }
+            };
+            let expected = gamma.powi(t) * last - first;
+            assert!(
+                (discounted - expected).abs() < 1e-4 * (1.0 + expected.abs()),
+                "{discounted} vs {expected}"
+            );
         }
     }
 
@@ -573,7 +655,7 @@ mod tests {
         let still = [[0.0; 3]; 2];
         let out = env.step(&still).unwrap();
         let mut credits = Vec::new();
-        difference_credits(&env, &mut CreditScratch::default(), &mut credits);
+        difference_credits(&env, 0.0, &mut CreditScratch::default(), &mut credits);
         assert!(
             credits[0] > 1e-3,
             "pushing towards the goal earns: {credits:?}"
@@ -599,7 +681,7 @@ mod tests {
 
         // Off, and before any step, there is no credit at all.
         let (mut env, _) = flock_world(vec![[138.0, 138.0, 2.0], [480.0, 20.0, 2.0]]);
-        difference_credits(&env, &mut CreditScratch::default(), &mut credits);
+        difference_credits(&env, 0.0, &mut CreditScratch::default(), &mut credits);
         assert_eq!(credits, vec![0.0, 0.0]);
         let mut plain = LearnerReward::new(&audited(0.0, 0.0), 0.99, &s);
         assert!(!plain.wants_credit());

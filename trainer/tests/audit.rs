@@ -53,6 +53,7 @@ fn the_from_scratch_configs_pass_the_audit() {
         "mtddpg-scratch6.toml",
         "mtddpg-scratch9.toml",
         "mtddpg-scratch13.toml",
+        "mtddpg-scratch15.toml",
     ] {
         passes(name);
     }
