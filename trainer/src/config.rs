@@ -1116,7 +1116,14 @@ mod tests {
             TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch15.toml"))
                 .expect("the fifteenth config parses");
         assert_eq!(fifteenth.reward.audited.straggler, 1.0);
-        assert_eq!(fifteenth.reward.audited_driving.as_ref().map(|d| d.straggler), Some(0.0));
+        assert_eq!(
+            fifteenth
+                .reward
+                .audited_driving
+                .as_ref()
+                .map(|d| d.straggler),
+            Some(0.0)
+        );
         let mut same = fifteenth.clone();
         same.output_dir = twelfth.output_dir.clone();
         same.reward.audited.straggler = 0.0;

@@ -135,7 +135,9 @@ pub fn flock_potential(world: &World, straggler: f64) -> f64 {
         .targets
         .iter()
         .map(|p| (((p[0] - cx).powi(2) + (p[1] - cy).powi(2)).sqrt() - r).max(0.0) / r)
-        .fold((0.0, 0.0_f64), |(sum, farthest), d| (sum + d, farthest.max(d)));
+        .fold((0.0, 0.0_f64), |(sum, farthest), d| {
+            (sum + d, farthest.max(d))
+        });
     let mut phi = -sum / world.targets.len() as f64;
     if straggler != 0.0 {
         phi -= straggler * farthest;
@@ -437,7 +439,10 @@ mod tests {
             env.reset(5);
             reward.start(&mut env);
             let first = flock_potential(env.world(), 2.0);
-            assert!(first < potential(env.world()), "the straggler counts twice more");
+            assert!(
+                first < potential(env.world()),
+                "the straggler counts twice more"
+            );
             let (mut discounted, mut t, mut r) = (0.0, 0, Vec::new());
             let last = loop {
                 let velocities = vec![velocity; env.world().herders.len()];
