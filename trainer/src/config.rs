@@ -1128,6 +1128,15 @@ mod tests {
         same.output_dir = twelfth.output_dir.clone();
         same.reward.audited.straggler = 0.0;
         assert_eq!(same, twelfth);
+        // The sixteenth differs from it only in the discount.
+        let sixteenth =
+            TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch16.toml"))
+                .expect("the sixteenth config parses");
+        assert_eq!(sixteenth.ddpg.gamma, 0.998);
+        let mut same = sixteenth.clone();
+        same.output_dir = twelfth.output_dir.clone();
+        same.ddpg.gamma = 0.995;
+        assert_eq!(same, twelfth);
         let text14 = include_str!("../configs/mtddpg-scratch14.toml");
         for (from, to, key) in [
             (

@@ -54,6 +54,7 @@ fn the_from_scratch_configs_pass_the_audit() {
         "mtddpg-scratch9.toml",
         "mtddpg-scratch13.toml",
         "mtddpg-scratch15.toml",
+        "mtddpg-scratch16.toml",
     ] {
         passes(name);
     }
