@@ -8,7 +8,8 @@
 //!   telemetry and time in, frames to send out); the `skyherd-ground` binary only moves bytes.
 //! * [`mission`]: when to start, complete or abort; [`uplink`]: snapshots and commands as
 //!   TUNNEL frames; [`detections`]: the sensor's scans.
-//! * [`tlog`]: `.tlog` writer (pymavlink's format) with an injectable clock.
+//! * [`tlog`]: `.tlog` writer (pymavlink's format) with an injectable clock; [`spool`]: the
+//!   binary's log files written on a thread of their own, so a stalled disk never stalls the loop.
 //! * [`tracking`]: multi-target tracker over anonymous detections (constant-velocity Kalman
 //!   filters, grid gating, clustered assignment, M-of-N birth, death by misses).
 //!
@@ -17,6 +18,7 @@
 pub mod detections;
 pub mod fleet;
 pub mod mission;
+pub mod spool;
 pub mod station;
 pub mod tlog;
 pub mod tracking;

@@ -16,7 +16,7 @@
 //! ground with it.
 
 use std::fs::File;
-use std::io::{BufWriter, Write};
+use std::io::Write;
 use std::path::PathBuf;
 use std::time::{Duration, Instant};
 
@@ -25,6 +25,7 @@ use clap::{Parser, Subcommand, ValueEnum};
 use mavlink::dialects::common::MavMessage;
 use skyherd_ground::fleet::{GroundLink, LinkConfig};
 use skyherd_ground::mission::MissionPlan;
+use skyherd_ground::spool::{Spool, SpoolStatus};
 use skyherd_ground::station::{GroundStation, ScanRow, StationConfig, UplinkCut, drone_reports};
 use skyherd_link::{Signing, SigningKey};
 use skyherd_onboard::Task;
@@ -207,6 +208,12 @@ fn main() -> Result<()> {
     if let Some(w) = &mut links.csv {
         w.flush()?;
     }
+    // The logs are written on threads of their own (skyherd_ground::spool): wait for them.
+    for (name, status) in &links.spools {
+        status
+            .wait_written(LOG_DRAIN)
+            .with_context(|| format!("writing the {name}"))?;
+    }
     let mut summary = serde_json::to_value(station.summary())?;
     summary["sensor_silent"] = sensor_silent.into();
     summary["fleet_frames_dropped"] = links.fleet.stats().dropped_frames().into();
@@ -214,11 +221,19 @@ fn main() -> Result<()> {
     Ok(())
 }
 
+/// A scan's handling (station, uplinks, logs) that takes longer than this is reported.
+const SLOW_SCAN_WORK: Duration = Duration::from_millis(200);
+
+/// How long the end of a mission waits for its log files to reach the disk.
+const LOG_DRAIN: Duration = Duration::from_secs(10);
+
 /// The station's sockets and files: the fleet link, one uplink per drone, the CSV log.
 struct Links {
     fleet: GroundLink,
     uplinks: Vec<(u8, GroundLink)>,
-    csv: Option<BufWriter<File>>,
+    csv: Option<Spool>,
+    /// The `.tlog` and CSV writers' progress, by file.
+    spools: Vec<(String, SpoolStatus)>,
 }
 
 impl Links {
@@ -232,8 +247,11 @@ impl Links {
         let fleet_key = read_key(args.fleet_key.as_ref())?;
         let mut fleet = GroundLink::open(&args.fleet, link_config(&fleet_key, 0))
             .with_context(|| format!("opening the fleet link {}", args.fleet))?;
+        let mut spools = Vec::new();
         if let Some(path) = &args.tlog {
-            fleet.log_to(Box::new(BufWriter::new(create(path)?)));
+            let tlog = Spool::new(create(path)?);
+            spools.push((format!(".tlog {}", path.display()), tlog.status()));
+            fleet.log_to(Box::new(tlog));
         }
         let mut uplinks = Vec::new();
         for (i, (id, address)) in args.drone_addresses()?.iter().enumerate() {
@@ -250,7 +268,8 @@ impl Links {
         }
         let csv = match &args.csv {
             Some(path) => {
-                let mut w = BufWriter::new(create(path)?);
+                let mut w = Spool::new(create(path)?);
+                spools.push((format!("CSV log {}", path.display()), w.status()));
                 writeln!(w, "{}", ScanRow::csv_header(drone_ids))?;
                 Some(w)
             }
@@ -260,6 +279,7 @@ impl Links {
             fleet,
             uplinks,
             csv,
+            spools,
         })
     }
 
@@ -298,6 +318,7 @@ impl Links {
                 continue;
             };
             last_scan_wall = Instant::now();
+            let work_started = last_scan_wall;
             let drones = drone_reports(self.fleet.fleet(), station.config().drones());
             let reply = station.on_scan(&scan, &drones)?;
             // The station's clock, not the scan's stamp: a forged or broken stamp is bounded.
@@ -323,6 +344,14 @@ impl Links {
                 self.fleet.flush_log()?;
                 last_flush = Instant::now();
                 last_flush_at = now;
+            }
+            // A scan's work is a few milliseconds; a long one delays every drone's uplink.
+            let work = work_started.elapsed();
+            if work > SLOW_SCAN_WORK {
+                say(format!(
+                    "slow scan: {} ms from the scan to its replies and logs at t={now:.1} s",
+                    work.as_millis()
+                ));
             }
             if reply.finished {
                 return Ok(false);
