@@ -132,10 +132,8 @@ impl Spool {
         }
     }
 
-    fn sender(&self) -> io::Result<&SyncSender<Vec<u8>>> {
-        self.sender
-            .as_ref()
-            .ok_or_else(|| io::Error::other("the spool's writer thread could not be started"))
+    fn no_thread() -> io::Error {
+        io::Error::other("the spool's writer thread could not be started")
     }
 
     /// Hand the pending bytes to the thread; wait for room only when `block`.
@@ -143,34 +141,36 @@ impl Spool {
         if self.pending.is_empty() {
             return Ok(());
         }
+        let Some(sender) = &self.sender else {
+            return Err(Self::no_thread());
+        };
         let chunk = std::mem::take(&mut self.pending);
-        self.shared.lock().queued += 1;
-        let sender = self.sender()?.clone();
         let sent = if block {
-            sender.send(chunk).map_err(|e| e.0)
+            sender.send(chunk).map_err(|_| ())
         } else {
             match sender.try_send(chunk) {
                 Ok(()) => Ok(()),
                 Err(TrySendError::Full(chunk)) => {
                     // Behind: keep the bytes for the next flush.
-                    self.shared.lock().queued -= 1;
                     self.pending = chunk;
                     return Ok(());
                 }
-                Err(TrySendError::Disconnected(chunk)) => Err(chunk),
+                Err(TrySendError::Disconnected(_)) => Err(()),
             }
         };
-        sent.map_err(|_| {
-            self.shared.lock().queued -= 1;
-            io::Error::other("the spool's writer thread ended")
-        })
+        // Counted once sent: the thread may count it written first, which only means that
+        // a waiter finds nothing left to wait for, as is true.
+        sent.map(|()| self.shared.lock().queued += 1)
+            .map_err(|()| io::Error::other("the spool's writer thread ended"))
     }
 }
 
 impl Write for Spool {
     fn write(&mut self, bytes: &[u8]) -> io::Result<usize> {
         self.shared.error()?;
-        self.sender()?;
+        if self.sender.is_none() {
+            return Err(Self::no_thread());
+        }
         self.pending.extend_from_slice(bytes);
         Ok(bytes.len())
     }
