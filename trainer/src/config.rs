@@ -1137,6 +1137,25 @@ mod tests {
         same.output_dir = twelfth.output_dir.clone();
         same.ddpg.gamma = 0.995;
         assert_eq!(same, twelfth);
+        // The seventeenth differs from the fifteenth only in collecting's shaping.
+        let seventeenth =
+            TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch17.toml"))
+                .expect("the seventeenth config parses");
+        assert_eq!(seventeenth.reward.audited.shaping, 5.0);
+        let mut same = seventeenth.clone();
+        same.output_dir = fifteenth.output_dir.clone();
+        same.reward.audited.shaping = 1.0;
+        same.reward.audited.shaping_form = crate::reward::ShapingForm::Potential;
+        assert_eq!(same, fifteenth);
+        // The eighteenth differs from the fifteenth only in the return's length.
+        let eighteenth =
+            TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch18.toml"))
+                .expect("the eighteenth config parses");
+        assert_eq!(eighteenth.ddpg.n_step, 10);
+        let mut same = eighteenth.clone();
+        same.output_dir = fifteenth.output_dir.clone();
+        same.ddpg.n_step = 5;
+        assert_eq!(same, fifteenth);
         let text14 = include_str!("../configs/mtddpg-scratch14.toml");
         for (from, to, key) in [
             (

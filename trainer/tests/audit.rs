@@ -55,6 +55,7 @@ fn the_from_scratch_configs_pass_the_audit() {
         "mtddpg-scratch13.toml",
         "mtddpg-scratch15.toml",
         "mtddpg-scratch16.toml",
+        "mtddpg-scratch17.toml",
     ] {
         passes(name);
     }
