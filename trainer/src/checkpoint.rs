@@ -78,6 +78,11 @@ pub struct Progress {
     /// as none.
     #[serde(default)]
     pub task_latest_success: [f64; 2],
+    /// Env steps of the DDPG phase each task has had (`Task::index`). Older checkpoints read
+    /// as none, and a resumed run shares their `env_steps` evenly between its tasks, as their
+    /// environments did.
+    #[serde(default)]
+    pub task_env_steps: [u64; 2],
 }
 
 /// Everything a checkpoint holds.
@@ -494,6 +499,7 @@ mod tests {
             task_best_since_reset: [0.125, 0.5],
             task_last_pass_env_steps: [900, 1200],
             task_latest_success: [0.375, 1.0],
+            task_env_steps: [617, 617],
         };
         let original = Checkpoint {
             agent,

@@ -666,8 +666,18 @@ pub struct LoopConfig {
     /// 1: off (every update holds every task's minibatch).
     pub passed_task_update_share: f64,
     /// The mean held-out success (over the task's evaluation scenarios, at its latest
-    /// evaluation) at which a task counts as learned for `passed_task_update_share`.
+    /// evaluation) at which a task counts as learned for `passed_task_update_share` and
+    /// `passed_task_env_share`.
     pub passed_task_bar: f64,
+    /// Env steps go where learning is left: under the same condition as
+    /// `passed_task_update_share`, a learned task's weight in the parallel environments is
+    /// this share and an unlearned one's is 1; each environment takes its next episode's task
+    /// so that the environments per task follow the weights (at least one each), so the
+    /// unlearned task gets more of the run's env steps while the total stays as configured.
+    /// The update rate and each update's minibatches are untouched. Evaluation cadence, reset
+    /// patience and curricula keep counting the run's env steps divided by the task count.
+    /// Needs `eval.every_task_env_steps`. 1: off (environment `i` always runs task `i % 2`).
+    pub passed_task_env_share: f64,
 }
 
 /// Which evaluations decide that a task has stalled ([`LoopConfig::task_reset_after_task_env_steps`]).
@@ -754,6 +764,7 @@ impl Default for LoopConfig {
             task_reset_rule: TaskResetRule::BestSinceReset,
             passed_task_update_share: 1.0,
             passed_task_bar: 0.95,
+            passed_task_env_share: 1.0,
         }
     }
 }
@@ -946,6 +957,21 @@ impl TrainConfig {
         }
         if !(t.passed_task_update_share > 0.0 && t.passed_task_update_share <= 1.0) {
             return bad("training.passed_task_update_share", "must be in (0, 1]");
+        }
+        if !(t.passed_task_env_share > 0.0 && t.passed_task_env_share <= 1.0) {
+            return bad("training.passed_task_env_share", "must be in (0, 1]");
+        }
+        if t.passed_task_env_share < 1.0 && self.eval.every_task_env_steps == 0 {
+            return bad(
+                "training.passed_task_env_share",
+                "needs eval.every_task_env_steps above 0 (it reads each task's evaluations)",
+            );
+        }
+        if t.passed_task_env_share < 1.0 && t.envs < t.tasks.len() * 2 {
+            return bad(
+                "training.passed_task_env_share",
+                "needs at least two environments per task (one is each task's floor)",
+            );
         }
         if !(t.passed_task_bar > 0.0 && t.passed_task_bar <= 1.0) {
             return bad("training.passed_task_bar", "must be in (0, 1]");
@@ -1156,6 +1182,33 @@ mod tests {
         same.output_dir = fifteenth.output_dir.clone();
         same.ddpg.n_step = 5;
         assert_eq!(same, fifteenth);
+        // The nineteenth differs from the fifteenth only in where the env steps go.
+        let nineteenth =
+            TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch19.toml"))
+                .expect("the nineteenth config parses");
+        assert_eq!(nineteenth.training.passed_task_env_share, 0.25);
+        let mut same = nineteenth.clone();
+        same.output_dir = fifteenth.output_dir.clone();
+        same.training.passed_task_env_share = 1.0;
+        assert_eq!(same, fifteenth);
+        let text19 = include_str!("../configs/mtddpg-scratch19.toml");
+        for (from, to) in [
+            (
+                "passed_task_env_share = 0.25",
+                "passed_task_env_share = 0.0",
+            ),
+            (
+                "passed_task_env_share = 0.25",
+                "passed_task_env_share = 1.5",
+            ),
+            ("envs = 8", "envs = 3"),
+        ] {
+            assert!(text19.contains(from), "{from}");
+            let e = TrainConfig::from_toml_str(&text19.replace(from, to))
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains("training.passed_task_env_share"), "{to}: {e}");
+        }
         let text14 = include_str!("../configs/mtddpg-scratch14.toml");
         for (from, to, key) in [
             (

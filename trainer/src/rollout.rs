@@ -257,9 +257,14 @@ struct Slot {
     paper_return: f64,
 }
 
-/// Environments stepped together; slot `i` always runs task `i % 2`.
+/// Environments stepped together; slot `i` runs task `i % 2` (of the configured tasks)
+/// unless [`Rollouts::set_task_slots`] asks for other counts per task.
 pub struct Rollouts {
     slots: Vec<Slot>,
+    /// Environments wanted per task (`Task::index`); `None`: each keeps its first task.
+    task_slots: Option<[usize; Task::COUNT]>,
+    /// Environment steps taken per task (`Task::index`).
+    pub task_env_steps: [u64; Task::COUNT],
     observer: EncoderBuffers,
     rng: ChaCha8Rng,
     reward: RewardConfig,
@@ -338,6 +343,8 @@ impl Rollouts {
     ) -> Result<Rollouts, EnvError> {
         let mut r = Rollouts {
             slots: Vec::with_capacity(count),
+            task_slots: None,
+            task_env_steps: [0; Task::COUNT],
             observer: EncoderBuffers::default(),
             rng,
             reward: config.reward.clone(),
@@ -360,6 +367,35 @@ impl Rollouts {
             r.slots.push(slot);
         }
         Ok(r)
+    }
+
+    /// From now on, each environment whose episode ends takes the task furthest below its
+    /// count in `slots` (environments per task, `Task::index`), its own task when that is as
+    /// far below as any: the counts move one finished episode at a time and never cut an
+    /// episode short. `None` keeps every environment on its task.
+    pub fn set_task_slots(&mut self, slots: Option<[usize; Task::COUNT]>) {
+        self.task_slots = slots;
+    }
+
+    /// The task environment `slot` runs next, its episode having ended on `current`.
+    fn next_task(&self, slot: usize, current: Task) -> Task {
+        let Some(wanted) = self.task_slots else {
+            return current;
+        };
+        let mut running = [0usize; Task::COUNT];
+        for (i, s) in self.slots.iter().enumerate() {
+            if i != slot {
+                running[s.draw.task.index()] += 1;
+            }
+        }
+        let lack = |t: Task| wanted[t.index()] as i64 - running[t.index()] as i64;
+        let mut best = current;
+        for task in Task::ALL {
+            if wanted[task.index()] > 0 && lack(task) > lack(best) {
+                best = task;
+            }
+        }
+        best
     }
 
     fn fresh_slot(&mut self, draw: Draw) -> Result<Slot, EnvError> {
@@ -455,6 +491,7 @@ impl Rollouts {
             };
             let out = slot.env.step(&velocities)?;
             self.env_steps += 1;
+            self.task_env_steps[slot.draw.task.index()] += 1;
             slot.reward
                 .step(&out, &slot.env, &velocities, &mut herder_rewards);
             slot.learner_return += herder_rewards.first().copied().map_or(0.0, f64::from);
@@ -569,7 +606,8 @@ impl Rollouts {
                     learner_return: slot.learner_return,
                     paper_return: slot.paper_return,
                 });
-                let task = slot.draw.task;
+                let current = slot.draw.task;
+                let task = self.next_task(i, current);
                 let d = draw(&mut self.rng, task);
                 self.slots[i] = self.fresh_slot(d)?;
             }
@@ -1038,6 +1076,65 @@ mod tests {
             leave < idle,
             "leaving ({leave}) must cost more than idling ({idle})"
         );
+    }
+
+    #[test]
+    fn environments_change_task_only_when_an_episode_ends_and_then_follow_the_counts() {
+        let mut config = TrainConfig::default();
+        config.training.episode_step_limit = 5;
+        let mut rng = ChaCha8Rng::seed_from_u64(1);
+        let actor = MultiTaskMlp::new(MlpShape::actor(FEATURES, 16, 1), &mut rng);
+        let mut draw = |_: &mut ChaCha8Rng, task| Draw::paper(task, 4, 2);
+        let mut rollouts =
+            Rollouts::new(8, &config, ChaCha8Rng::seed_from_u64(2), &mut draw).expect("envs");
+        let mut replay: Vec<ReplayBuffer> = (0..2)
+            .map(|_| ReplayBuffer::new(FEATURES, 3, 1000))
+            .collect();
+        let tasks_now = |r: &Rollouts| {
+            let mut n = [0usize; Task::COUNT];
+            for s in &r.slots {
+                n[s.draw.task.index()] += 1;
+            }
+            n
+        };
+        let mut step = |r: &mut Rollouts| {
+            r.step(
+                &Controller::Actor(&actor, 0.3),
+                &mut replay,
+                None,
+                &mut draw,
+            )
+            .expect("step")
+        };
+        assert_eq!(tasks_now(&rollouts), [4, 4], "an even start");
+        for _ in 0..3 {
+            assert!(step(&mut rollouts).is_empty());
+        }
+        rollouts.set_task_slots(Some([2, 6]));
+        // Mid-episode: nobody moves.
+        assert!(step(&mut rollouts).is_empty());
+        assert_eq!(tasks_now(&rollouts), [4, 4]);
+        assert_eq!(rollouts.task_env_steps, [16, 16]);
+        // Every episode ends at the step limit together; two driving ones turn to collecting.
+        assert_eq!(step(&mut rollouts).len(), 8);
+        assert_eq!(tasks_now(&rollouts), [2, 6]);
+        for _ in 0..5 {
+            step(&mut rollouts);
+        }
+        assert_eq!(rollouts.task_env_steps, [20 + 10, 20 + 30]);
+        assert_eq!(rollouts.env_steps, 80);
+        // Back to the even split, and without counts each environment keeps its task.
+        rollouts.set_task_slots(Some([4, 4]));
+        for _ in 0..5 {
+            step(&mut rollouts);
+        }
+        assert_eq!(tasks_now(&rollouts), [4, 4]);
+        rollouts.set_task_slots(None);
+        for _ in 0..5 {
+            step(&mut rollouts);
+        }
+        assert_eq!(tasks_now(&rollouts), [4, 4]);
+        assert_eq!(rollouts.task_env_steps, [60, 100]);
     }
 
     #[test]

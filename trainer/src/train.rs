@@ -277,7 +277,7 @@ pub fn evolve_checkpoint(
 fn append_eval_rows(
     path: &Path,
     env_steps: u64,
-    task_env_steps: u64,
+    task_env_steps: &[u64; Task::COUNT],
     rows: &[EvalRow],
 ) -> Result<(), TrainError> {
     let old = match std::fs::read_to_string(path) {
@@ -298,7 +298,8 @@ fn append_eval_rows(
     }
     for r in rows {
         text.push_str(&format!(
-            "{env_steps},{task_env_steps},{},{},{},{},{},{},{}\n",
+            "{env_steps},{},{},{},{},{},{},{},{}\n",
+            task_env_steps[r.scenario.task.index()],
             task_name(r.scenario.task),
             r.scenario.targets,
             r.scenario.herders,
@@ -362,17 +363,84 @@ pub(crate) fn update_shares(
     tasks: &[Task],
     latest: &[f64; Task::COUNT],
 ) -> [f64; Task::COUNT] {
-    let passed = |task: &Task| latest[task.index()] >= t.passed_task_bar;
+    passed_task_shares(t.passed_task_bar, t.passed_task_update_share, tasks, latest)
+}
+
+/// Each task's weight in the parallel environments under `training.passed_task_env_share`,
+/// as [`update_shares`] with that share. Pure.
+pub(crate) fn env_shares(
+    t: &crate::config::LoopConfig,
+    tasks: &[Task],
+    latest: &[f64; Task::COUNT],
+) -> [f64; Task::COUNT] {
+    passed_task_shares(t.passed_task_bar, t.passed_task_env_share, tasks, latest)
+}
+
+fn passed_task_shares(
+    bar: f64,
+    share: f64,
+    tasks: &[Task],
+    latest: &[f64; Task::COUNT],
+) -> [f64; Task::COUNT] {
+    let passed = |task: &Task| latest[task.index()] >= bar;
     let focus = tasks.iter().any(passed) && !tasks.iter().all(passed);
     let mut shares = [0.0; Task::COUNT];
     for task in tasks {
-        shares[task.index()] = if focus && passed(task) {
-            t.passed_task_update_share
-        } else {
-            1.0
-        };
+        shares[task.index()] = if focus && passed(task) { share } else { 1.0 };
     }
     shares
+}
+
+/// How many of `envs` parallel environments run each task under `weights` (see
+/// [`env_shares`]): proportional to the weights, rounded to the nearest, at least one per
+/// trained task, `envs` in all (the largest rounding errors give way first, ties to the lower
+/// `Task::index`). Tasks with weight 0 get none. Pure.
+pub(crate) fn env_slots(envs: usize, weights: &[f64; Task::COUNT]) -> [usize; Task::COUNT] {
+    let mut slots = [0usize; Task::COUNT];
+    let total: f64 = weights.iter().filter(|w| **w > 0.0).sum();
+    let trained = weights.iter().filter(|w| **w > 0.0).count();
+    if total <= 0.0 || envs < trained {
+        return slots;
+    }
+    let ideal = weights.map(|w| {
+        if w > 0.0 {
+            envs as f64 * w / total
+        } else {
+            0.0
+        }
+    });
+    for i in 0..Task::COUNT {
+        if weights[i] > 0.0 {
+            slots[i] = (ideal[i].round() as usize).max(1);
+        }
+    }
+    loop {
+        let sum: usize = slots.iter().sum();
+        if sum == envs {
+            return slots;
+        }
+        // The task furthest above (or below) its ideal count gives (or takes) one.
+        let candidates =
+            (0..Task::COUNT).filter(|&i| weights[i] > 0.0 && (sum < envs || slots[i] > 1));
+        let error = |i: usize| slots[i] as f64 - ideal[i];
+        let pick = if sum > envs {
+            candidates.fold(None, |best: Option<usize>, i| match best {
+                Some(b) if error(b) >= error(i) => Some(b),
+                _ => Some(i),
+            })
+        } else {
+            candidates.fold(None, |best: Option<usize>, i| match best {
+                Some(b) if error(b) <= error(i) => Some(b),
+                _ => Some(i),
+            })
+        };
+        let Some(i) = pick else { return slots };
+        if sum > envs {
+            slots[i] -= 1;
+        } else {
+            slots[i] += 1;
+        }
+    }
 }
 
 /// Which tasks' minibatches go into updates under `shares` (see [`update_shares`]): each
@@ -500,13 +568,11 @@ impl Run<'_> {
             self.progress.episodes,
             s,
         ))?;
-        // Per scenario, with the environment steps each trained task has had (the parallel
-        // environments cycle through the tasks, so they share the steps evenly).
-        let per_task = self.progress.env_steps / self.config.training.tasks.len().max(1) as u64;
+        // Per scenario, with the environment steps its task has had.
         append_eval_rows(
             &self.dir().join("eval.csv"),
             self.progress.env_steps,
-            per_task,
+            &self.progress.task_env_steps,
             &rows,
         )?;
         for &task in &self.config.training.tasks {
@@ -654,6 +720,14 @@ impl Run<'_> {
             &mut draw_at(start_steps, self.progress.task_reset_env_steps),
         )?;
         observer.phase("MTDDPG", t.env_steps);
+        if self.progress.task_env_steps == [0; Task::COUNT] && self.progress.env_steps > 0 {
+            // A checkpoint from before the count: its environments cycled through the tasks.
+            let each = self.progress.env_steps / t.tasks.len().max(1) as u64;
+            for task in &t.tasks {
+                self.progress.task_env_steps[task.index()] = each;
+            }
+        }
+        let mut last_env_slots = None;
         let mut batches = vec![Batch::default(); Task::COUNT];
         let mut demo_batches = vec![Batch::default(); Task::COUNT];
         let mut recent = Recent { window: Vec::new() };
@@ -696,7 +770,27 @@ impl Run<'_> {
             } else {
                 Controller::Actor(&self.agent.actor, config.ddpg.exploration_noise)
             };
+            if t.passed_task_env_share < 1.0 {
+                let weights = env_shares(t, &t.tasks, &self.progress.task_latest_success);
+                let slots = env_slots(t.envs, &weights);
+                if last_env_slots != Some(slots) {
+                    // The first setting is the even split every run starts from.
+                    if last_env_slots.is_some() {
+                        observer.note(&format!(
+                            "environments per task: {}",
+                            t.tasks
+                                .iter()
+                                .map(|task| format!("{} {}", task_name(*task), slots[task.index()]))
+                                .collect::<Vec<_>>()
+                                .join(", ")
+                        ));
+                    }
+                    last_env_slots = Some(slots);
+                    rollouts.set_task_slots(Some(slots));
+                }
+            }
             let before = rollouts.env_steps;
+            let before_tasks = rollouts.task_env_steps;
             let finished = rollouts.step(
                 &controller,
                 &mut self.replay,
@@ -705,6 +799,9 @@ impl Run<'_> {
             )?;
             let stepped = rollouts.env_steps - before;
             self.progress.env_steps += stepped;
+            for (i, steps) in self.progress.task_env_steps.iter_mut().enumerate() {
+                *steps += rollouts.task_env_steps[i] - before_tasks[i];
+            }
             self.progress.episodes += finished.len() as u64;
             recent.push(&finished);
 
@@ -1290,6 +1387,42 @@ mod tests {
     }
 
     #[test]
+    fn a_learned_task_gives_its_environments_to_the_unlearned_one_keeping_one() {
+        let t = crate::config::LoopConfig {
+            passed_task_env_share: 0.25,
+            passed_task_bar: 0.95,
+            ..crate::config::LoopConfig::default()
+        };
+        let both = Task::ALL;
+        let (d, c) = (Task::Driving.index(), Task::Collecting.index());
+        let mut latest = [0.0; Task::COUNT];
+        latest[d] = 0.97;
+        latest[c] = 0.6;
+        let weights = env_shares(&t, &both, &latest);
+        assert_eq!((weights[d], weights[c]), (0.25, 1.0));
+        // 8 x 0.2 = 1.6 rounds to 2; 8 x 0.8 = 6.4 to 6.
+        let slots = env_slots(8, &weights);
+        assert_eq!((slots[d], slots[c]), (2, 6));
+        // The update shares are a key of their own and stay full.
+        assert_eq!(update_shares(&t, &both, &latest), [1.0, 1.0]);
+        // Both learned, or neither: the even split.
+        assert_eq!(env_slots(8, &env_shares(&t, &both, &[0.99, 0.99])), [4, 4]);
+        assert_eq!(env_slots(8, &env_shares(&t, &both, &[0.1, 0.2])), [4, 4]);
+        // A small share still keeps one environment; rounding up past the total gives way.
+        assert_eq!(env_slots(4, &[0.01, 1.0]), [1, 3]);
+        assert_eq!(env_slots(3, &[1.0, 1.0]), [1, 2]);
+        assert_eq!(env_slots(5, &[1.0, 1.0]), [2, 3]);
+        // A single-task arm has every environment.
+        assert_eq!(
+            env_slots(8, &env_shares(&t, &[Task::Collecting], &latest)),
+            [0, 8]
+        );
+        // Off (the default): full weights whatever the evaluations say.
+        let off = crate::config::LoopConfig::default();
+        assert_eq!(env_shares(&off, &both, &[1.0, 0.0]), [1.0, 1.0]);
+    }
+
+    #[test]
     fn the_recent_rule_also_resets_a_task_that_passed_and_collapsed() {
         let t = crate::config::LoopConfig {
             task_reset_after_task_env_steps: 50_000,
@@ -1346,11 +1479,11 @@ mod tests {
         std::fs::create_dir_all(&dir).unwrap();
         let path = dir.join("eval.csv");
         let _ = std::fs::remove_file(&path);
-        append_eval_rows(&path, 25_000, 12_500, &[row(Task::Driving, 4, 0.1)]).unwrap();
-        append_eval_rows(&path, 50_000, 25_000, &[row(Task::Driving, 4, 0.2)]).unwrap();
-        append_eval_rows(&path, 75_000, 37_500, &[row(Task::Driving, 4, 0.3)]).unwrap();
+        append_eval_rows(&path, 25_000, &[12_500; 2], &[row(Task::Driving, 4, 0.1)]).unwrap();
+        append_eval_rows(&path, 50_000, &[25_000; 2], &[row(Task::Driving, 4, 0.2)]).unwrap();
+        append_eval_rows(&path, 75_000, &[37_500; 2], &[row(Task::Driving, 4, 0.3)]).unwrap();
         // Resumed from the checkpoint at 50k: 50k is evaluated again and 75k is gone.
-        append_eval_rows(&path, 50_000, 25_000, &[row(Task::Driving, 4, 0.25)]).unwrap();
+        append_eval_rows(&path, 50_000, &[25_000; 2], &[row(Task::Driving, 4, 0.25)]).unwrap();
         let text = std::fs::read_to_string(&path).unwrap();
         let lines: Vec<&str> = text.lines().collect();
         assert_eq!(lines[0], EVAL_CSV_HEADER);
