@@ -873,6 +873,21 @@ impl TrainConfig {
         if !(d.tau > 0.0 && d.tau <= 1.0) {
             return bad("ddpg.tau", "must be in (0, 1]");
         }
+        if !(d.exploration_noise.is_finite() && d.exploration_noise >= 0.0) {
+            return bad("ddpg.exploration_noise", "must be a finite number >= 0");
+        }
+        if let Some(last) = d.exploration_noise_final {
+            if !(last.is_finite() && last >= 0.0) {
+                return bad("ddpg.exploration_noise_final", "must be a finite number >= 0");
+            }
+        }
+        let (from, to) = (d.exploration_noise_decay_from, d.exploration_noise_decay_to);
+        if !(0.0..=1.0).contains(&from) || !(0.0..=1.0).contains(&to) || from > to {
+            return bad(
+                "ddpg.exploration_noise_decay_from",
+                "and exploration_noise_decay_to must be fractions of the run with from <= to",
+            );
+        }
         if d.batch_size < 2 {
             return bad(
                 "ddpg.batch_size",
@@ -1191,6 +1206,44 @@ mod tests {
         same.output_dir = fifteenth.output_dir.clone();
         same.training.passed_task_env_share = 1.0;
         assert_eq!(same, fifteenth);
+        // The twentieth differs from the nineteenth only in the exploration noise's fall; a
+        // window that runs backwards, or a negative noise, is refused by name.
+        let twentieth =
+            TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch20.toml"))
+                .expect("the twentieth config parses");
+        assert_eq!(twentieth.ddpg.exploration_noise_final, Some(0.1));
+        assert_eq!(twentieth.ddpg.exploration_noise_at(0.0), 0.3);
+        assert!((twentieth.ddpg.exploration_noise_at(0.9) - 0.1).abs() < 1e-6);
+        let mut same = twentieth.clone();
+        same.output_dir = nineteenth.output_dir.clone();
+        same.ddpg.exploration_noise_final = None;
+        same.ddpg.exploration_noise_decay_from = 0.0;
+        same.ddpg.exploration_noise_decay_to = 1.0;
+        assert_eq!(same, nineteenth);
+        let text20 = include_str!("../configs/mtddpg-scratch20.toml");
+        for (from, to, key) in [
+            (
+                "exploration_noise_decay_to = 0.8",
+                "exploration_noise_decay_to = 0.2",
+                "ddpg.exploration_noise_decay_from",
+            ),
+            (
+                "exploration_noise_decay_to = 0.8",
+                "exploration_noise_decay_to = 1.5",
+                "ddpg.exploration_noise_decay_from",
+            ),
+            (
+                "exploration_noise_final = 0.1",
+                "exploration_noise_final = -0.1",
+                "ddpg.exploration_noise_final",
+            ),
+        ] {
+            assert!(text20.contains(from), "{from}");
+            let e = TrainConfig::from_toml_str(&text20.replace(from, to))
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(key), "{to}: {e}");
+        }
         let text19 = include_str!("../configs/mtddpg-scratch19.toml");
         for (from, to) in [
             (

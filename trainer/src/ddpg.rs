@@ -67,8 +67,17 @@ pub struct DdpgConfig {
     pub policy_frequency: u32,
     /// Multiplies rewards before they reach the critic.
     pub reward_scale: f32,
-    /// Std of the exploration noise on the normalised action.
+    /// Std of the exploration noise on the normalised action (at the start of the run; see
+    /// [`DdpgConfig::exploration_noise_final`]).
     pub exploration_noise: f32,
+    /// Where the exploration noise ends: from `exploration_noise_decay_from` to
+    /// `exploration_noise_decay_to` (fractions of `training.env_steps`) the std goes linearly
+    /// from `exploration_noise` to this, and stays there. `None` (the default): constant.
+    pub exploration_noise_final: Option<f32>,
+    /// Run progress (a fraction of `training.env_steps`) at which the noise starts to fall.
+    pub exploration_noise_decay_from: f32,
+    /// Run progress at which the noise reaches `exploration_noise_final`.
+    pub exploration_noise_decay_to: f32,
     /// How exploration noise is drawn.
     pub exploration: Exploration,
     /// Mean reversion per step of the Ornstein-Uhlenbeck noise (its stationary std is
@@ -118,6 +127,9 @@ impl Default for DdpgConfig {
             policy_frequency: 2,
             reward_scale: 0.1,
             exploration_noise: 0.1,
+            exploration_noise_final: None,
+            exploration_noise_decay_from: 0.0,
+            exploration_noise_decay_to: 1.0,
             exploration: Exploration::Gaussian,
             ou_theta: 0.15,
             twin_critics: false,
@@ -128,6 +140,28 @@ impl Default for DdpgConfig {
             centralised_critic: false,
             critic_max_others: 7,
         }
+    }
+}
+
+impl DdpgConfig {
+    /// The exploration noise's std at `progress` (env steps so far over the run's total):
+    /// `exploration_noise` until `exploration_noise_decay_from`, then linearly down (or up) to
+    /// `exploration_noise_final` at `exploration_noise_decay_to`, and that from there on.
+    pub fn exploration_noise_at(&self, progress: f64) -> f32 {
+        let Some(last) = self.exploration_noise_final else {
+            return self.exploration_noise;
+        };
+        let from = f64::from(self.exploration_noise_decay_from);
+        let to = f64::from(self.exploration_noise_decay_to);
+        let share = if to > from {
+            ((progress - from) / (to - from)).clamp(0.0, 1.0)
+        } else if progress >= to {
+            1.0
+        } else {
+            0.0
+        };
+        let first = f64::from(self.exploration_noise);
+        (first + share * (f64::from(last) - first)) as f32
     }
 }
 
@@ -718,6 +752,31 @@ mod tests {
             policy_frequency: 1,
             ..DdpgConfig::default()
         }
+    }
+
+    #[test]
+    fn the_exploration_noise_falls_linearly_inside_its_window_and_is_constant_by_default() {
+        let constant = DdpgConfig {
+            exploration_noise: 0.3,
+            ..DdpgConfig::default()
+        };
+        for p in [0.0, 0.5, 1.0] {
+            assert_eq!(constant.exploration_noise_at(p), 0.3);
+        }
+        let falling = DdpgConfig {
+            exploration_noise: 0.3,
+            exploration_noise_final: Some(0.1),
+            exploration_noise_decay_from: 0.4,
+            exploration_noise_decay_to: 0.8,
+            ..DdpgConfig::default()
+        };
+        let at = |p: f64| falling.exploration_noise_at(p);
+        assert_eq!(at(0.0), 0.3);
+        assert_eq!(at(0.4), 0.3);
+        assert!((at(0.6) - 0.2).abs() < 1e-6, "{}", at(0.6));
+        assert!((at(0.8) - 0.1).abs() < 1e-6);
+        assert!((at(1.0) - 0.1).abs() < 1e-6);
+        assert!(at(0.5) > at(0.7), "it only falls");
     }
 
     #[test]

@@ -759,16 +759,16 @@ impl Run<'_> {
                 let at = self.progress.task_reset_env_steps[task.index()];
                 at > 0 && self.progress.env_steps < at.saturating_add(t.task_reset_warmup_steps)
             });
+            // The exploration noise may fall over the run (DdpgConfig::exploration_noise_at).
+            let noise = config
+                .ddpg
+                .exploration_noise_at(self.progress.env_steps as f64 / t.env_steps.max(1) as f64);
             let controller = if self.progress.env_steps < t.random_warmup_steps {
                 Controller::RandomWaypoints
             } else if reset_warmup.contains(&true) {
-                Controller::ActorExceptRandomTasks(
-                    &self.agent.actor,
-                    config.ddpg.exploration_noise,
-                    reset_warmup,
-                )
+                Controller::ActorExceptRandomTasks(&self.agent.actor, noise, reset_warmup)
             } else {
-                Controller::Actor(&self.agent.actor, config.ddpg.exploration_noise)
+                Controller::Actor(&self.agent.actor, noise)
             };
             if t.passed_task_env_share < 1.0 {
                 let weights = env_shares(t, &t.tasks, &self.progress.task_latest_success);
