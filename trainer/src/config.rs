@@ -878,7 +878,10 @@ impl TrainConfig {
         }
         if let Some(last) = d.exploration_noise_final {
             if !(last.is_finite() && last >= 0.0) {
-                return bad("ddpg.exploration_noise_final", "must be a finite number >= 0");
+                return bad(
+                    "ddpg.exploration_noise_final",
+                    "must be a finite number >= 0",
+                );
             }
         }
         let (from, to) = (d.exploration_noise_decay_from, d.exploration_noise_decay_to);
