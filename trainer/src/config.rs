@@ -876,13 +876,13 @@ impl TrainConfig {
         if !(d.exploration_noise.is_finite() && d.exploration_noise >= 0.0) {
             return bad("ddpg.exploration_noise", "must be a finite number >= 0");
         }
-        if let Some(last) = d.exploration_noise_final {
-            if !(last.is_finite() && last >= 0.0) {
-                return bad(
-                    "ddpg.exploration_noise_final",
-                    "must be a finite number >= 0",
-                );
-            }
+        if let Some(last) = d.exploration_noise_final
+            && !(last.is_finite() && last >= 0.0)
+        {
+            return bad(
+                "ddpg.exploration_noise_final",
+                "must be a finite number >= 0",
+            );
         }
         let (from, to) = (d.exploration_noise_decay_from, d.exploration_noise_decay_to);
         if !(0.0..=1.0).contains(&from) || !(0.0..=1.0).contains(&to) || from > to {
