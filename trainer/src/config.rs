@@ -1099,6 +1099,18 @@ impl TrainConfig {
 mod tests {
     use super::*;
 
+    /// Each `(from, to, key)`: `text` holds `from`, and with it replaced by `to` the config is
+    /// refused with an error that names `key`.
+    fn assert_each_edit_is_refused(text: &str, edits: &[(&str, &str, &str)]) {
+        for &(from, to, key) in edits {
+            assert!(text.contains(from), "{from}");
+            let e = TrainConfig::from_toml_str(&text.replace(from, to))
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(key), "{to}: {e}");
+        }
+    }
+
     #[test]
     fn the_shipped_config_file_spells_out_the_defaults() {
         // All but the encoder: mtddpg-v1 reads encoder v3's features, new runs v4's.
@@ -1223,30 +1235,26 @@ mod tests {
         same.ddpg.exploration_noise_decay_from = 0.0;
         same.ddpg.exploration_noise_decay_to = 1.0;
         assert_eq!(same, nineteenth);
-        let text20 = include_str!("../configs/mtddpg-scratch20.toml");
-        for (from, to, key) in [
-            (
-                "exploration_noise_decay_to = 0.8",
-                "exploration_noise_decay_to = 0.2",
-                "ddpg.exploration_noise_decay_from",
-            ),
-            (
-                "exploration_noise_decay_to = 0.8",
-                "exploration_noise_decay_to = 1.5",
-                "ddpg.exploration_noise_decay_from",
-            ),
-            (
-                "exploration_noise_final = 0.1",
-                "exploration_noise_final = -0.1",
-                "ddpg.exploration_noise_final",
-            ),
-        ] {
-            assert!(text20.contains(from), "{from}");
-            let e = TrainConfig::from_toml_str(&text20.replace(from, to))
-                .unwrap_err()
-                .to_string();
-            assert!(e.contains(key), "{to}: {e}");
-        }
+        assert_each_edit_is_refused(
+            include_str!("../configs/mtddpg-scratch20.toml"),
+            &[
+                (
+                    "exploration_noise_decay_to = 0.8",
+                    "exploration_noise_decay_to = 0.2",
+                    "ddpg.exploration_noise_decay_from",
+                ),
+                (
+                    "exploration_noise_decay_to = 0.8",
+                    "exploration_noise_decay_to = 1.5",
+                    "ddpg.exploration_noise_decay_from",
+                ),
+                (
+                    "exploration_noise_final = 0.1",
+                    "exploration_noise_final = -0.1",
+                    "ddpg.exploration_noise_final",
+                ),
+            ],
+        );
         let text19 = include_str!("../configs/mtddpg-scratch19.toml");
         for (from, to) in [
             (
@@ -1265,30 +1273,26 @@ mod tests {
                 .to_string();
             assert!(e.contains("training.passed_task_env_share"), "{to}: {e}");
         }
-        let text14 = include_str!("../configs/mtddpg-scratch14.toml");
-        for (from, to, key) in [
-            (
-                "passed_task_update_share = 0.25",
-                "passed_task_update_share = 0.0",
-                "training.passed_task_update_share",
-            ),
-            (
-                "passed_task_bar = 0.95",
-                "passed_task_bar = 1.5",
-                "training.passed_task_bar",
-            ),
-            (
-                "every_task_env_steps = 25_000",
-                "every_task_env_steps = 0",
-                "eval.every_task_env_steps",
-            ),
-        ] {
-            assert!(text14.contains(from), "{from}");
-            let e = TrainConfig::from_toml_str(&text14.replace(from, to))
-                .unwrap_err()
-                .to_string();
-            assert!(e.contains(key), "{key}: {e}");
-        }
+        assert_each_edit_is_refused(
+            include_str!("../configs/mtddpg-scratch14.toml"),
+            &[
+                (
+                    "passed_task_update_share = 0.25",
+                    "passed_task_update_share = 0.0",
+                    "training.passed_task_update_share",
+                ),
+                (
+                    "passed_task_bar = 0.95",
+                    "passed_task_bar = 1.5",
+                    "training.passed_task_bar",
+                ),
+                (
+                    "every_task_env_steps = 25_000",
+                    "every_task_env_steps = 0",
+                    "eval.every_task_env_steps",
+                ),
+            ],
+        );
         let text = include_str!("../configs/mtddpg-scratch12.toml");
         for (from, to, key) in [
             (
