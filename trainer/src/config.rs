@@ -1255,24 +1255,23 @@ mod tests {
                 ),
             ],
         );
-        let text19 = include_str!("../configs/mtddpg-scratch19.toml");
-        for (from, to) in [
-            (
-                "passed_task_env_share = 0.25",
-                "passed_task_env_share = 0.0",
-            ),
-            (
-                "passed_task_env_share = 0.25",
-                "passed_task_env_share = 1.5",
-            ),
-            ("envs = 8", "envs = 3"),
-        ] {
-            assert!(text19.contains(from), "{from}");
-            let e = TrainConfig::from_toml_str(&text19.replace(from, to))
-                .unwrap_err()
-                .to_string();
-            assert!(e.contains("training.passed_task_env_share"), "{to}: {e}");
-        }
+        let share = "training.passed_task_env_share";
+        assert_each_edit_is_refused(
+            include_str!("../configs/mtddpg-scratch19.toml"),
+            &[
+                (
+                    "passed_task_env_share = 0.25",
+                    "passed_task_env_share = 0.0",
+                    share,
+                ),
+                (
+                    "passed_task_env_share = 0.25",
+                    "passed_task_env_share = 1.5",
+                    share,
+                ),
+                ("envs = 8", "envs = 3", share),
+            ],
+        );
         assert_each_edit_is_refused(
             include_str!("../configs/mtddpg-scratch14.toml"),
             &[
@@ -1294,29 +1293,26 @@ mod tests {
             ],
         );
         let text = include_str!("../configs/mtddpg-scratch12.toml");
-        for (from, to, key) in [
-            (
-                "task_reset_rule = \"recent\"",
-                "task_reset_rule = \"latest\"",
-                "task_reset_rule",
-            ),
-            (
-                "first_share = 0.2             # scattered",
-                "first_share = -0.2             # scattered",
-                "curriculum.collecting_target_distance.first_share",
-            ),
-            (
-                "full_at_progress = 0.3        # ... rising to 100 % at 30 % of the run\n\n[warm_start]",
-                "full_at_progress = 1.3\n\n[warm_start]",
-                "curriculum.collecting_target_distance.full_at_progress",
-            ),
-        ] {
-            assert!(text.contains(from), "{from}");
-            let e = TrainConfig::from_toml_str(&text.replace(from, to))
-                .unwrap_err()
-                .to_string();
-            assert!(e.contains(key), "{key}: {e}");
-        }
+        assert_each_edit_is_refused(
+            text,
+            &[
+                (
+                    "task_reset_rule = \"recent\"",
+                    "task_reset_rule = \"latest\"",
+                    "task_reset_rule",
+                ),
+                (
+                    "first_share = 0.2             # scattered",
+                    "first_share = -0.2             # scattered",
+                    "curriculum.collecting_target_distance.first_share",
+                ),
+                (
+                    "full_at_progress = 0.3        # ... rising to 100 % at 30 % of the run\n\n[warm_start]",
+                    "full_at_progress = 1.3\n\n[warm_start]",
+                    "curriculum.collecting_target_distance.full_at_progress",
+                ),
+            ],
+        );
     }
 
     #[test]
@@ -1343,39 +1339,36 @@ mod tests {
         same.training.task_reset_clears_replay = false;
         same.training.task_reset_warmup_steps = 0;
         assert_eq!(same, eighth);
-        for (from, to, key) in [
-            (
-                "task_reset_below = 0.25 ",
-                "task_reset_below = 0.0 ",
-                "training.task_reset_below",
-            ),
-            (
-                "task_reset_below = 0.25 ",
-                "task_reset_below = 1.5 ",
-                "training.task_reset_below",
-            ),
-            (
-                "task_resets_max = 3",
-                "task_resets_max = 0",
-                "training.task_resets_max",
-            ),
-            (
-                "task_reset_after_task_env_steps = 75_000 ",
-                "task_reset_after_task_env_steps = 10_000 ",
-                "training.task_reset_after_task_env_steps",
-            ),
-            (
-                "every_task_env_steps = 25_000 ",
-                "every_task_env_steps = 0 ",
-                "training.task_reset_after_task_env_steps",
-            ),
-        ] {
-            assert!(text.contains(from), "{from}");
-            let e = TrainConfig::from_toml_str(&text.replace(from, to))
-                .unwrap_err()
-                .to_string();
-            assert!(e.contains(key), "{from} -> {to}: {e}");
-        }
+        assert_each_edit_is_refused(
+            text,
+            &[
+                (
+                    "task_reset_below = 0.25 ",
+                    "task_reset_below = 0.0 ",
+                    "training.task_reset_below",
+                ),
+                (
+                    "task_reset_below = 0.25 ",
+                    "task_reset_below = 1.5 ",
+                    "training.task_reset_below",
+                ),
+                (
+                    "task_resets_max = 3",
+                    "task_resets_max = 0",
+                    "training.task_resets_max",
+                ),
+                (
+                    "task_reset_after_task_env_steps = 75_000 ",
+                    "task_reset_after_task_env_steps = 10_000 ",
+                    "training.task_reset_after_task_env_steps",
+                ),
+                (
+                    "every_task_env_steps = 25_000 ",
+                    "every_task_env_steps = 0 ",
+                    "training.task_reset_after_task_env_steps",
+                ),
+            ],
+        );
     }
 
     #[test]
