@@ -21,6 +21,9 @@
 //!         - leave_penalty_horizons / (1 - gamma)         once, when anything leaves the arena
 //!   Phi(s) = - mean over targets of max(0, |p - g| - R) / R     0 in a terminal state
 //!            - straggler * max over targets of max(0, |p - g| - R) / R
+//!   + credit (Phi(s') - Phi(s' without h))               each herder's own part of the
+//!                                                      progress (the mean summed over the
+//!                                                      targets when credit_per_target)
 //!   ```
 //!
 //!   Hovering forever is worth `-time_cost / (1 - gamma)`; an episode that succeeds at step
@@ -82,6 +85,11 @@ pub struct AuditedReward {
     /// near the goal. Shaping and difference credit both read this potential. 0: off (older
     /// configs train as before).
     pub straggler: f64,
+    /// The difference credit counts each target's own progress, summed over the targets,
+    /// instead of the mean's ([`credit_potential`]): the mean gives a herder pushing one target
+    /// of N only 1/N of what it gives at N = 1. The team's shaping keeps the mean. false: off
+    /// (older configs train as before).
+    pub credit_per_target: bool,
 }
 
 impl Default for AuditedReward {
@@ -96,6 +104,7 @@ impl Default for AuditedReward {
             leave_penalty_horizons: 2.0,
             credit: 0.0,
             straggler: 0.0,
+            credit_per_target: false,
         }
     }
 }
@@ -126,23 +135,36 @@ pub fn potential(world: &World) -> f64 {
 /// Minus the targets' mean distance beyond the goal edge and `straggler` times the farthest
 /// one's, in goal radii (0 when every target is inside, and with no targets).
 pub fn flock_potential(world: &World, straggler: f64) -> f64 {
-    if world.targets.is_empty() {
-        return 0.0;
+    let (sum, farthest) = distances_beyond_goal(world);
+    let mut phi = -sum / world.targets.len().max(1) as f64;
+    if straggler != 0.0 {
+        phi -= straggler * farthest;
     }
+    phi
+}
+
+/// The potential the difference credit reads: [`flock_potential`], or with
+/// `per_target` the targets' summed distance beyond the goal edge in place of their mean
+/// (the straggler's term unchanged), so pushing one target a metre earns the same at any N.
+pub fn credit_potential(world: &World, straggler: f64, per_target: bool) -> f64 {
+    if !per_target {
+        return flock_potential(world, straggler);
+    }
+    let (sum, farthest) = distances_beyond_goal(world);
+    -sum - straggler * farthest
+}
+
+/// The targets' summed and largest distance beyond the goal edge, in goal radii.
+fn distances_beyond_goal(world: &World) -> (f64, f64) {
     let [cx, cy] = world.goal.center;
     let r = world.goal.radius.max(1e-9);
-    let (sum, farthest) = world
+    world
         .targets
         .iter()
         .map(|p| (((p[0] - cx).powi(2) + (p[1] - cy).powi(2)).sqrt() - r).max(0.0) / r)
         .fold((0.0, 0.0_f64), |(sum, farthest), d| {
             (sum + d, farthest.max(d))
-        });
-    let mut phi = -sum / world.targets.len() as f64;
-    if straggler != 0.0 {
-        phi -= straggler * farthest;
-    }
-    phi
+        })
 }
 
 /// Herder `h`'s approach potential: minus its ground distance to the nearest target, in goal
@@ -182,17 +204,19 @@ pub struct CreditScratch {
 /// reward through the noise of the others' actions; this credit gives it that part directly
 /// (the difference reward of Wolpert and Tumer 2002, with the simulator as the counterfactual).
 ///
-/// The potential is [`flock_potential`] with weight `straggler` on the farthest target.
+/// The potential is [`credit_potential`]: [`flock_potential`] with weight `straggler` on the
+/// farthest target, its mean part summed over the targets instead when `per_target`.
 ///
 /// All zeros when `env` does not keep its last step or has taken none this episode.
 pub fn difference_credits(
     env: &Env,
     straggler: f64,
+    per_target: bool,
     scratch: &mut CreditScratch,
     out: &mut Vec<f64>,
 ) {
     let after = env.world();
-    let actual = flock_potential(after, straggler);
+    let actual = credit_potential(after, straggler, per_target);
     let m = after.herders.len();
     out.clear();
     out.resize(m, 0.0);
@@ -200,7 +224,7 @@ pub fn difference_credits(
     for (h, credit) in out.iter_mut().enumerate() {
         // Only an index past the herders could fail, and `h` is not one.
         if let Ok(true) = env.replay_last_step_without(h, world, &mut scratch.replay) {
-            *credit = actual - flock_potential(world, straggler);
+            *credit = actual - credit_potential(world, straggler, per_target);
         }
     }
 }
@@ -306,6 +330,7 @@ impl LearnerReward {
                     difference_credits(
                         env,
                         a.straggler,
+                        a.credit_per_target,
                         &mut self.credit_scratch,
                         &mut self.credits,
                     );
@@ -361,6 +386,7 @@ mod tests {
                 leave_penalty_horizons: 0.0,
                 credit: 0.0,
                 straggler: 0.0,
+                credit_per_target: false,
             },
             ..RewardConfig::default()
         }
@@ -660,7 +686,7 @@ mod tests {
         let still = [[0.0; 3]; 2];
         let out = env.step(&still).unwrap();
         let mut credits = Vec::new();
-        difference_credits(&env, 0.0, &mut CreditScratch::default(), &mut credits);
+        difference_credits(&env, 0.0, false, &mut CreditScratch::default(), &mut credits);
         assert!(
             credits[0] > 1e-3,
             "pushing towards the goal earns: {credits:?}"
@@ -686,7 +712,7 @@ mod tests {
 
         // Off, and before any step, there is no credit at all.
         let (mut env, _) = flock_world(vec![[138.0, 138.0, 2.0], [480.0, 20.0, 2.0]]);
-        difference_credits(&env, 0.0, &mut CreditScratch::default(), &mut credits);
+        difference_credits(&env, 0.0, false, &mut CreditScratch::default(), &mut credits);
         assert_eq!(credits, vec![0.0, 0.0]);
         let mut plain = LearnerReward::new(&audited(0.0, 0.0), 0.99, &s);
         assert!(!plain.wants_credit());
@@ -694,5 +720,40 @@ mod tests {
         let out = env.step(&still).unwrap();
         plain.step(&out, &env, &still, &mut r);
         assert_eq!(r, vec![0.0, 0.0]);
+    }
+
+    #[test]
+    fn the_per_target_credit_is_the_mean_credit_times_n_with_the_straggler_term_kept() {
+        let (mut env, s) = flock_world(vec![[138.0, 138.0, 2.0], [480.0, 20.0, 2.0]]);
+        let n = env.world().targets.len() as f64;
+        let mut config = audited(0.0, 0.0);
+        config.audited.credit = 1.0;
+        // Starting a crediting reward makes the env keep its last step for the replays.
+        LearnerReward::new(&config, 0.99, &s).start(&mut env);
+        env.step(&[[0.0; 3]; 2]).unwrap();
+        let mut scratch = CreditScratch::default();
+        let (mut mean, mut summed, mut mean_s, mut summed_s) =
+            (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+        difference_credits(&env, 0.0, false, &mut scratch, &mut mean);
+        difference_credits(&env, 0.0, true, &mut scratch, &mut summed);
+        assert!(mean[0] > 1e-4, "herder 0 pushes the flock: {mean:?}");
+        for (m, s) in mean.iter().zip(&summed) {
+            assert!((s - n * m).abs() < 1e-9 * (1.0 + s.abs()), "{mean:?} {summed:?}");
+        }
+        // The straggler's term is the same in both; only the mean's part is scaled.
+        difference_credits(&env, 1.0, false, &mut scratch, &mut mean_s);
+        difference_credits(&env, 1.0, true, &mut scratch, &mut summed_s);
+        for h in 0..2 {
+            let straggler_part = mean_s[h] - mean[h];
+            assert!(
+                (summed_s[h] - (summed[h] + straggler_part)).abs() < 1e-9,
+                "{mean_s:?} {summed_s:?}"
+            );
+        }
+        let world = env.world();
+        assert_eq!(
+            credit_potential(world, 0.5, false),
+            flock_potential(world, 0.5)
+        );
     }
 }
