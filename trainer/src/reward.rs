@@ -686,7 +686,13 @@ mod tests {
         let still = [[0.0; 3]; 2];
         let out = env.step(&still).unwrap();
         let mut credits = Vec::new();
-        difference_credits(&env, 0.0, false, &mut CreditScratch::default(), &mut credits);
+        difference_credits(
+            &env,
+            0.0,
+            false,
+            &mut CreditScratch::default(),
+            &mut credits,
+        );
         assert!(
             credits[0] > 1e-3,
             "pushing towards the goal earns: {credits:?}"
@@ -712,7 +718,13 @@ mod tests {
 
         // Off, and before any step, there is no credit at all.
         let (mut env, _) = flock_world(vec![[138.0, 138.0, 2.0], [480.0, 20.0, 2.0]]);
-        difference_credits(&env, 0.0, false, &mut CreditScratch::default(), &mut credits);
+        difference_credits(
+            &env,
+            0.0,
+            false,
+            &mut CreditScratch::default(),
+            &mut credits,
+        );
         assert_eq!(credits, vec![0.0, 0.0]);
         let mut plain = LearnerReward::new(&audited(0.0, 0.0), 0.99, &s);
         assert!(!plain.wants_credit());
@@ -738,7 +750,10 @@ mod tests {
         difference_credits(&env, 0.0, true, &mut scratch, &mut summed);
         assert!(mean[0] > 1e-4, "herder 0 pushes the flock: {mean:?}");
         for (m, s) in mean.iter().zip(&summed) {
-            assert!((s - n * m).abs() < 1e-9 * (1.0 + s.abs()), "{mean:?} {summed:?}");
+            assert!(
+                (s - n * m).abs() < 1e-9 * (1.0 + s.abs()),
+                "{mean:?} {summed:?}"
+            );
         }
         // The straggler's term is the same in both; only the mean's part is scaled.
         difference_credits(&env, 1.0, false, &mut scratch, &mut mean_s);
