@@ -1235,6 +1235,32 @@ mod tests {
         same.ddpg.exploration_noise_decay_from = 0.0;
         same.ddpg.exploration_noise_decay_to = 1.0;
         assert_eq!(same, nineteenth);
+        // The twenty-first differs from the twentieth only in collecting's approach term, the
+        // twenty-second only in collecting's credit (per target, weight 2).
+        let twenty_first =
+            TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch21.toml"))
+                .expect("the twenty-first config parses");
+        assert_eq!(twenty_first.reward.audited.approach, 1.0);
+        let mut same = twenty_first.clone();
+        same.output_dir = twentieth.output_dir.clone();
+        same.reward.audited.approach = 0.0;
+        assert_eq!(same, twentieth);
+        let twenty_second =
+            TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch22.toml"))
+                .expect("the twenty-second config parses");
+        assert!(twenty_second.reward.audited.credit_per_target);
+        assert!(
+            !twenty_second
+                .reward
+                .audited_driving
+                .as_ref()
+                .is_some_and(|d| d.credit_per_target)
+        );
+        let mut same = twenty_second.clone();
+        same.output_dir = twentieth.output_dir.clone();
+        same.reward.audited.credit_per_target = false;
+        same.reward.audited.credit = 5.0;
+        assert_eq!(same, twentieth);
         assert_each_edit_is_refused(
             include_str!("../configs/mtddpg-scratch20.toml"),
             &[

@@ -56,6 +56,8 @@ fn the_from_scratch_configs_pass_the_audit() {
         "mtddpg-scratch15.toml",
         "mtddpg-scratch16.toml",
         "mtddpg-scratch17.toml",
+        "mtddpg-scratch21.toml",
+        "mtddpg-scratch22.toml",
     ] {
         passes(name);
     }
