@@ -674,6 +674,19 @@ mod tests {
         (env, s)
     }
 
+    /// Each herder's difference credit for `env`'s last step, with fresh buffers.
+    fn credits_of(env: &Env, straggler: f64, per_target: bool) -> Vec<f64> {
+        let mut credits = Vec::new();
+        difference_credits(
+            env,
+            straggler,
+            per_target,
+            &mut CreditScratch::default(),
+            &mut credits,
+        );
+        credits
+    }
+
     #[test]
     fn the_difference_credit_goes_to_the_herder_that_pushed() {
         // Herder 0 behind the flock (away from the goal), herder 1 far off in a corner.
@@ -685,14 +698,7 @@ mod tests {
         reward.start(&mut env);
         let still = [[0.0; 3]; 2];
         let out = env.step(&still).unwrap();
-        let mut credits = Vec::new();
-        difference_credits(
-            &env,
-            0.0,
-            false,
-            &mut CreditScratch::default(),
-            &mut credits,
-        );
+        let credits = credits_of(&env, 0.0, false);
         assert!(
             credits[0] > 1e-3,
             "pushing towards the goal earns: {credits:?}"
@@ -718,13 +724,7 @@ mod tests {
 
         // Off, and before any step, there is no credit at all.
         let (mut env, _) = flock_world(vec![[138.0, 138.0, 2.0], [480.0, 20.0, 2.0]]);
-        difference_credits(
-            &env,
-            0.0,
-            false,
-            &mut CreditScratch::default(),
-            &mut credits,
-        );
+        let credits = credits_of(&env, 0.0, false);
         assert_eq!(credits, vec![0.0, 0.0]);
         let mut plain = LearnerReward::new(&audited(0.0, 0.0), 0.99, &s);
         assert!(!plain.wants_credit());
@@ -743,11 +743,8 @@ mod tests {
         // Starting a crediting reward makes the env keep its last step for the replays.
         LearnerReward::new(&config, 0.99, &s).start(&mut env);
         env.step(&[[0.0; 3]; 2]).unwrap();
-        let mut scratch = CreditScratch::default();
-        let (mut mean, mut summed, mut mean_s, mut summed_s) =
-            (Vec::new(), Vec::new(), Vec::new(), Vec::new());
-        difference_credits(&env, 0.0, false, &mut scratch, &mut mean);
-        difference_credits(&env, 0.0, true, &mut scratch, &mut summed);
+        let mean = credits_of(&env, 0.0, false);
+        let summed = credits_of(&env, 0.0, true);
         assert!(mean[0] > 1e-4, "herder 0 pushes the flock: {mean:?}");
         for (m, s) in mean.iter().zip(&summed) {
             assert!(
@@ -756,8 +753,8 @@ mod tests {
             );
         }
         // The straggler's term is the same in both; only the mean's part is scaled.
-        difference_credits(&env, 1.0, false, &mut scratch, &mut mean_s);
-        difference_credits(&env, 1.0, true, &mut scratch, &mut summed_s);
+        let mean_s = credits_of(&env, 1.0, false);
+        let summed_s = credits_of(&env, 1.0, true);
         for h in 0..2 {
             let straggler_part = mean_s[h] - mean[h];
             assert!(
