@@ -678,6 +678,23 @@ pub struct LoopConfig {
     /// patience and curricula keep counting the run's env steps divided by the task count.
     /// Needs `eval.every_task_env_steps`. 1: off (environment `i` always runs task `i % 2`).
     pub passed_task_env_share: f64,
+    /// Exploration excursions (off by default: 0): while the actor flies an environment of one
+    /// of `excursion_tasks`, each of its herders starts, with this probability per step, an
+    /// excursion: it flies at full speed to a point drawn `excursion_radius_m` from a target
+    /// drawn at random, on any side of it, for at most `excursion_max_steps` steps or until it
+    /// is there, and the actor (with its noise) takes over again. The replay keeps the flown
+    /// actions, as in the random-waypoint warm-up. What the herder should do near a target is
+    /// still learned from the reward alone; the excursions only put it there, where the
+    /// actor's own noise seldom takes it (`rollout::Excursions`).
+    pub excursion_rate: f64,
+    /// Nearest and farthest distance (metres, simulator frame) of an excursion's waypoint from
+    /// its target.
+    pub excursion_radius_m: [f64; 2],
+    /// Steps an excursion lasts at most.
+    pub excursion_max_steps: u64,
+    /// The tasks whose environments fly excursions.
+    #[serde(with = "task_list_serde")]
+    pub excursion_tasks: Vec<Task>,
 }
 
 /// Which evaluations decide that a task has stalled ([`LoopConfig::task_reset_after_task_env_steps`]).
@@ -765,6 +782,10 @@ impl Default for LoopConfig {
             passed_task_update_share: 1.0,
             passed_task_bar: 0.95,
             passed_task_env_share: 1.0,
+            excursion_rate: 0.0,
+            excursion_radius_m: [5.0, 25.0],
+            excursion_max_steps: 40,
+            excursion_tasks: Vec::new(),
         }
     }
 }
@@ -891,6 +912,12 @@ impl TrainConfig {
                 "and exploration_noise_decay_to must be fractions of the run with from <= to",
             );
         }
+        if !(0.0..=1.0).contains(&d.twin_min_weight) {
+            return bad(
+                "ddpg.twin_min_weight",
+                "must be in [0, 1] (1: TD3's min, 0: the mean)",
+            );
+        }
         if d.batch_size < 2 {
             return bad(
                 "ddpg.batch_size",
@@ -989,6 +1016,22 @@ impl TrainConfig {
             return bad(
                 "training.passed_task_env_share",
                 "needs at least two environments per task (one is each task's floor)",
+            );
+        }
+        if !(0.0..=1.0).contains(&t.excursion_rate) {
+            return bad("training.excursion_rate", "must be a probability in [0, 1]");
+        }
+        let [near, far] = t.excursion_radius_m;
+        if !(near.is_finite() && far.is_finite() && near >= 0.0 && near <= far) {
+            return bad(
+                "training.excursion_radius_m",
+                "must be [nearest, farthest] metres with 0 <= nearest <= farthest",
+            );
+        }
+        if t.excursion_rate > 0.0 && (t.excursion_max_steps == 0 || t.excursion_tasks.is_empty()) {
+            return bad(
+                "training.excursion_tasks",
+                "excursions need at least one task and excursion_max_steps above 0",
             );
         }
         if !(t.passed_task_bar > 0.0 && t.passed_task_bar <= 1.0) {
@@ -1261,6 +1304,39 @@ mod tests {
         same.reward.audited.credit_per_target = false;
         same.reward.audited.credit = 5.0;
         assert_eq!(same, twentieth);
+        // The twenty-third differs from the twentieth only in collecting's excursions, the
+        // twenty-fourth only in the twin critics' target.
+        let twenty_third =
+            TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch23.toml"))
+                .expect("the twenty-third config parses");
+        assert_eq!(twenty_third.training.excursion_rate, 0.01);
+        assert_eq!(
+            twenty_third.training.excursion_tasks,
+            vec![Task::Collecting]
+        );
+        let mut same = twenty_third.clone();
+        same.output_dir = twentieth.output_dir.clone();
+        same.training.excursion_rate = 0.0;
+        same.training.excursion_radius_m = [5.0, 25.0];
+        same.training.excursion_max_steps = 40;
+        same.training.excursion_tasks.clear();
+        assert_eq!(same, twentieth);
+        let twenty_fourth =
+            TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch24.toml"))
+                .expect("the twenty-fourth config parses");
+        assert_eq!(twenty_fourth.ddpg.twin_min_weight, 0.5);
+        let mut same = twenty_fourth.clone();
+        same.output_dir = twentieth.output_dir.clone();
+        same.ddpg.twin_min_weight = 1.0;
+        assert_eq!(same, twentieth);
+        assert_each_edit_is_refused(
+            include_str!("../configs/mtddpg-scratch24.toml"),
+            &[(
+                "twin_min_weight = 0.5",
+                "twin_min_weight = 1.5",
+                "ddpg.twin_min_weight",
+            )],
+        );
         assert_each_edit_is_refused(
             include_str!("../configs/mtddpg-scratch20.toml"),
             &[

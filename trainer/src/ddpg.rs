@@ -85,6 +85,11 @@ pub struct DdpgConfig {
     pub ou_theta: f32,
     /// TD3: a second critic; the TD target takes the smaller of the two target critics.
     pub twin_critics: bool,
+    /// With twin critics, the TD target's next value is `w min(Q1', Q2') + (1 - w) mean(Q1',
+    /// Q2')` (the weighted double Q of WD3, He and Hou 2020): 1 (the default) is TD3's clipped
+    /// double Q, 0 the plain mean. The min under-estimates most where the critics disagree,
+    /// which is where the replay is thin; a weight below 1 softens that pessimism.
+    pub twin_min_weight: f32,
     /// TD3 target policy smoothing: std of the Gaussian noise added to the target actor's
     /// action (0: none).
     pub target_noise: f32,
@@ -133,6 +138,7 @@ impl Default for DdpgConfig {
             exploration: Exploration::Gaussian,
             ou_theta: 0.15,
             twin_critics: false,
+            twin_min_weight: 1.0,
             target_noise: 0.0,
             target_noise_clip: 0.5,
             n_step: 1,
@@ -488,8 +494,9 @@ impl Agent {
 
     /// The TD targets of one task's batch: `reward_scale r + gamma continues Q'(s', a')` with
     /// `a'` the target actor's action (smoothed by TD3's clipped noise when configured, its
-    /// vertical part zero when planar) and `Q'` the target critic, or the smaller of the two
-    /// target critics with TD3's twins.
+    /// vertical part zero when planar) and `Q'` the target critic, or with TD3's twins the
+    /// smaller of the two target critics, mixed with their mean by
+    /// [`DdpgConfig::twin_min_weight`].
     pub fn td_targets(&mut self, task: usize, b: &Batch) -> Vec<f32> {
         let c = self.config;
         let obs_dim = self.obs_dim();
@@ -514,8 +521,9 @@ impl Agent {
         let mut next_q = tape.output().to_vec();
         if let Some(twin) = &self.twin {
             twin.target.forward(task, &next_input, b.size, &mut tape);
+            let w = c.twin_min_weight;
             for (q, q2) in next_q.iter_mut().zip(tape.output()) {
-                *q = q.min(*q2);
+                *q = w * q.min(*q2) + (1.0 - w) * 0.5 * (*q + *q2);
             }
         }
         (0..b.size)
@@ -938,6 +946,19 @@ mod tests {
         assert!(q1.iter().zip(&q2).any(|(a, b)| a != b));
         // A terminal row (continues 0) is the scaled reward alone.
         assert_eq!(targets[0], 0.5 * b.rewards[0]);
+        // WD3's weight mixes the smaller with the mean: a quarter of the min, three quarters
+        // of the mean.
+        agent.config.twin_min_weight = 0.25;
+        let mixed = agent.td_targets(1, &b);
+        for r in 0..b.size {
+            let next = 0.25 * q1[r].min(q2[r]) + 0.75 * 0.5 * (q1[r] + q2[r]);
+            let expected = 0.5 * b.rewards[r] + 0.9 * b.continues[r] * next;
+            assert!((mixed[r] - expected).abs() < 1e-5, "row {r}");
+        }
+        assert!(
+            mixed.iter().zip(&targets).any(|(m, t)| m > t),
+            "the mean lifts the target"
+        );
         // Without the twin the target is the first critic's.
         agent.twin = None;
         let single = agent.td_targets(1, &b);

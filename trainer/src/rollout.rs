@@ -18,7 +18,8 @@ use skyherd_sim::policy::act_all;
 use skyherd_sim::{Env, EnvError, HerderCount, Policy, RewardCorrection, Scenario};
 
 use crate::config::{
-    CurriculumStage, ROOM_LAYOUT_MAX_TARGETS, RewardConfig, TrainConfig, WarmStartConfig,
+    CurriculumStage, LoopConfig, ROOM_LAYOUT_MAX_TARGETS, RewardConfig, TrainConfig,
+    WarmStartConfig,
 };
 use crate::ddpg::{ACTION_DIM, DdpgConfig, Exploration};
 use crate::network::{MultiTaskMlp, Tape};
@@ -242,6 +243,49 @@ struct HerderState {
     nstep: NStep,
     ou: [f32; ACTION_DIM],
     waypoint: Option<([f64; 2], u64)>,
+    /// An exploration excursion under way: its waypoint and the step it ends at.
+    excursion: Option<([f64; 2], u64)>,
+}
+
+/// Exploration excursions ([`LoopConfig::excursion_rate`](crate::config::LoopConfig)): while
+/// the actor flies, a herder now and then flies at full speed to a random point near a
+/// random target, then hands back to the actor.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Excursions {
+    /// Probability per herder and step of starting one (0: off).
+    pub rate: f64,
+    /// Nearest and farthest distance of the waypoint from its target, metres.
+    pub radius_m: [f64; 2],
+    /// Steps one lasts at most.
+    pub max_steps: u64,
+    /// Which tasks' environments fly them (`Task::index`).
+    pub tasks: [bool; Task::COUNT],
+}
+
+impl Excursions {
+    /// The excursions `config` asks for.
+    pub fn from_config(config: &LoopConfig) -> Excursions {
+        let mut tasks = [false; Task::COUNT];
+        for t in &config.excursion_tasks {
+            tasks[t.index()] = true;
+        }
+        Excursions {
+            rate: config.excursion_rate,
+            radius_m: config.excursion_radius_m,
+            max_steps: config.excursion_max_steps,
+            tasks,
+        }
+    }
+}
+
+/// Full speed from `from` towards `to` in the plane (simulator frame, m/s; zero when there).
+fn full_speed_towards(from: [f64; 3], to: [f64; 2], v_max: f64) -> [f32; 3] {
+    let (dx, dy) = (to[0] - from[0], to[1] - from[1]);
+    let d = dx.hypot(dy);
+    if d < 1e-9 {
+        return [0.0; 3];
+    }
+    [(v_max * dx / d) as f32, (v_max * dy / d) as f32, 0.0]
 }
 
 struct Slot {
@@ -275,6 +319,7 @@ pub struct Rollouts {
     flight_rules: bool,
     /// The driving curriculum's floor on the pulled goal's distance, goal radii.
     min_centre_distance_radii: f64,
+    excursions: Excursions,
     /// Environment steps taken (summed over slots).
     pub env_steps: u64,
 }
@@ -357,6 +402,7 @@ impl Rollouts {
                 .curriculum
                 .driving_goal_distance
                 .min_centre_distance_radii,
+            excursions: Excursions::from_config(&config.training),
             env_steps: 0,
         };
         for i in 0..count {
@@ -437,6 +483,7 @@ impl Rollouts {
             nstep: NStep::new(self.ddpg.n_step, self.gamma as f32),
             ou: [0.0; ACTION_DIM],
             waypoint: None,
+            excursion: None,
         };
         let mut slot = Slot {
             herders: vec![herder; env.world().herders.len()],
@@ -615,6 +662,56 @@ impl Rollouts {
         Ok(finished)
     }
 
+    /// Replaces the actor's action of every herder on an [`Excursions`] excursion (starting
+    /// and ending them first). Draws nothing when excursions are off, so older configs keep
+    /// their random streams.
+    fn fly_excursions(&mut self, out: &mut [Vec<[f32; ACTION_DIM]>]) {
+        let Rollouts {
+            slots,
+            rng,
+            excursions: e,
+            ..
+        } = self;
+        if e.rate <= 0.0 {
+            return;
+        }
+        for (s, actions) in slots.iter_mut().zip(out.iter_mut()) {
+            if !e.tasks[s.draw.task.index()] {
+                continue;
+            }
+            let world = s.env.observation();
+            if world.targets.is_empty() {
+                continue;
+            }
+            let (area, step) = (world.area, world.step);
+            let v_max = world.limits.herder;
+            // There: within one step's flight.
+            let arrived = v_max * world.dt;
+            for (h, action) in actions.iter_mut().enumerate() {
+                let p = world.herders[h];
+                let state = &mut s.herders[h];
+                if let Some((w, until)) = state.excursion
+                    && (step >= until || (w[0] - p[0]).hypot(w[1] - p[1]) <= arrived)
+                {
+                    state.excursion = None;
+                }
+                if state.excursion.is_none() && rng.random_bool(e.rate) {
+                    let t = world.targets[rng.random_range(0..world.targets.len())];
+                    let angle = rng.random_range(0.0..std::f64::consts::TAU);
+                    let r = rng.random_range(e.radius_m[0]..=e.radius_m[1]);
+                    let w = [
+                        (t[0] + r * angle.cos()).clamp(0.0, area.width),
+                        (t[1] + r * angle.sin()).clamp(0.0, area.depth),
+                    ];
+                    state.excursion = Some((w, step + e.max_steps));
+                }
+                if let (Some((w, _)), Some(frame)) = (state.excursion, s.frames[h]) {
+                    *action = frame.world_to_action(full_speed_towards(p, w, v_max));
+                }
+            }
+        }
+    }
+
     fn choose_actions(&mut self, controller: &Controller<'_>) -> Vec<Vec<[f32; ACTION_DIM]>> {
         match *controller {
             Controller::Actor(actor, noise_std) => {
@@ -662,6 +759,7 @@ impl Rollouts {
                         out[i][h] = a;
                     }
                 }
+                self.fly_excursions(&mut out);
                 out
             }
             Controller::ActorExceptRandomTasks(actor, noise_std, random) => {
@@ -698,9 +796,7 @@ impl Rollouts {
                                     state.waypoint = Some((w, step));
                                 }
                                 let (w, _) = state.waypoint.unwrap_or(([p[0], p[1]], step));
-                                let (dx, dy) = (w[0] - p[0], w[1] - p[1]);
-                                let d = dx.hypot(dy).max(1e-9);
-                                let v = [(v_max * dx / d) as f32, (v_max * dy / d) as f32, 0.0];
+                                let v = full_speed_towards(p, w, v_max);
                                 s.frames[h].map_or([0.0; 3], |f| f.world_to_action(v))
                             })
                             .collect()
@@ -1286,6 +1382,69 @@ mod tests {
         assert!(
             batch.actions.iter().all(|a| a.abs() < 0.05),
             "collecting flies the fresh actor"
+        );
+    }
+
+    #[test]
+    fn excursions_fly_collecting_herders_at_full_speed_to_a_target_and_leave_driving_alone() {
+        let mut config = TrainConfig::default();
+        config.training.excursion_rate = 1.0;
+        config.training.excursion_radius_m = [0.0, 0.0];
+        config.training.excursion_max_steps = 7;
+        config.training.excursion_tasks = vec![Task::Collecting];
+        config.validate().expect("valid excursions");
+        let mut rng = ChaCha8Rng::seed_from_u64(1);
+        let actor = MultiTaskMlp::new(MlpShape::actor(FEATURES, 16, 1), &mut rng);
+        let mut draw = |_: &mut ChaCha8Rng, task| Draw::paper(task, 4, 3);
+        let mut rollouts =
+            Rollouts::new(2, &config, ChaCha8Rng::seed_from_u64(2), &mut draw).expect("envs");
+        let actions = rollouts.choose_actions(&Controller::Actor(&actor, 0.0));
+        for (slot, flown) in rollouts.slots.iter().zip(&actions) {
+            let world = slot.env.observation();
+            let v_max = world.limits.herder;
+            for (h, a) in flown.iter().enumerate() {
+                let v = slot.frames[h].expect("encoded").action_to_world(*a);
+                let speed = f64::from(v[0].hypot(v[1]));
+                if slot.draw.task == Task::Driving {
+                    assert!(speed < 0.05 * v_max, "driving flies the fresh actor");
+                    assert!(slot.herders[h].excursion.is_none());
+                    continue;
+                }
+                assert!((speed - v_max).abs() < 1e-3 * v_max, "full speed: {speed}");
+                let (w, until) = slot.herders[h].excursion.expect("on an excursion");
+                assert_eq!(until, world.step + 7);
+                assert!(
+                    world.targets.contains(&w),
+                    "radius 0: the waypoint is a target"
+                );
+                let p = world.herders[h];
+                let (dx, dy) = (w[0] - p[0], w[1] - p[1]);
+                let along = (f64::from(v[0]) * dx + f64::from(v[1]) * dy) / (speed * dx.hypot(dy));
+                assert!(along > 0.999, "heads for its target: cos {along}");
+            }
+        }
+        // Off (the default), the actor's actions are untouched.
+        let plain = TrainConfig::default();
+        let mut off =
+            Rollouts::new(2, &plain, ChaCha8Rng::seed_from_u64(2), &mut draw).expect("envs");
+        let quiet = off.choose_actions(&Controller::Actor(&actor, 0.0));
+        assert!(quiet.iter().flatten().flatten().all(|a| a.abs() < 0.05));
+        // A radius that runs backwards, or excursions without a task, are refused by name.
+        let mut bad = config.clone();
+        bad.training.excursion_radius_m = [20.0, 5.0];
+        assert!(
+            bad.validate()
+                .unwrap_err()
+                .to_string()
+                .contains("excursion_radius_m")
+        );
+        let mut bad = config.clone();
+        bad.training.excursion_tasks.clear();
+        assert!(
+            bad.validate()
+                .unwrap_err()
+                .to_string()
+                .contains("excursion_tasks")
         );
     }
 
