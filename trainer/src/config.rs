@@ -1305,7 +1305,8 @@ mod tests {
         same.reward.audited.credit = 5.0;
         assert_eq!(same, twentieth);
         // The twenty-third differs from the twentieth only in collecting's excursions, the
-        // twenty-fourth only in the twin critics' target.
+        // twenty-fourth only in the twin critics' target, the twenty-fifth (below) only in
+        // the target smoothing's width.
         let twenty_third =
             TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch23.toml"))
                 .expect("the twenty-third config parses");
@@ -1328,6 +1329,15 @@ mod tests {
         let mut same = twenty_fourth.clone();
         same.output_dir = twentieth.output_dir.clone();
         same.ddpg.twin_min_weight = 1.0;
+        assert_eq!(same, twentieth);
+        let twenty_fifth =
+            TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch25.toml"))
+                .expect("the twenty-fifth config parses");
+        assert_eq!(twenty_fifth.ddpg.target_noise, 0.05);
+        let mut same = twenty_fifth.clone();
+        same.output_dir = twentieth.output_dir.clone();
+        same.ddpg.target_noise = 0.2;
+        same.ddpg.target_noise_clip = 0.5;
         assert_eq!(same, twentieth);
         assert_each_edit_is_refused(
             include_str!("../configs/mtddpg-scratch24.toml"),
