@@ -1339,6 +1339,15 @@ mod tests {
         same.ddpg.target_noise = 0.2;
         same.ddpg.target_noise_clip = 0.5;
         assert_eq!(same, twentieth);
+        // The twenty-sixth differs from the twentieth only in the layers' width.
+        let twenty_sixth =
+            TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch26.toml"))
+                .expect("the twenty-sixth config parses");
+        assert_eq!(twenty_sixth.network.hidden, 192);
+        let mut same = twenty_sixth.clone();
+        same.output_dir = twentieth.output_dir.clone();
+        same.network.hidden = 128;
+        assert_eq!(same, twentieth);
         assert_each_edit_is_refused(
             include_str!("../configs/mtddpg-scratch24.toml"),
             &[(
