@@ -1348,6 +1348,15 @@ mod tests {
         same.output_dir = twentieth.output_dir.clone();
         same.network.hidden = 128;
         assert_eq!(same, twentieth);
+        // The twenty-seventh differs from the twenty-sixth only in the training-time check's size.
+        let twenty_seventh =
+            TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch27.toml"))
+                .expect("the twenty-seventh config parses");
+        assert_eq!(twenty_seventh.eval.episodes, 24);
+        let mut same = twenty_seventh.clone();
+        same.output_dir = twenty_sixth.output_dir.clone();
+        same.eval.episodes = 8;
+        assert_eq!(same, twenty_sixth);
         assert_each_edit_is_refused(
             include_str!("../configs/mtddpg-scratch24.toml"),
             &[(
