@@ -1172,6 +1172,19 @@ mod tests {
         assert!(e.contains("encoder_version"), "{e}");
     }
 
+    /// Asserts that `config` is `base` once `undo` takes back the changes it was made with
+    /// (the output directory aside).
+    fn assert_is_with_undone(
+        config: &TrainConfig,
+        base: &TrainConfig,
+        undo: impl FnOnce(&mut TrainConfig),
+    ) {
+        let mut same = config.clone();
+        same.output_dir = base.output_dir.clone();
+        undo(&mut same);
+        assert_eq!(&same, base);
+    }
+
     #[test]
     fn the_twelfth_config_is_the_eleventh_with_recent_resets_and_the_collecting_curriculum() {
         let twelfth = TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch12.toml"))
@@ -1185,20 +1198,18 @@ mod tests {
             eleventh.training.task_reset_rule,
             TaskResetRule::BestSinceReset
         );
-        let mut same = twelfth.clone();
-        same.output_dir = eleventh.output_dir.clone();
-        same.training.task_reset_rule = TaskResetRule::BestSinceReset;
-        same.curriculum.collecting_target_distance = SpawnShareCurriculum::default();
-        assert_eq!(same, eleventh);
+        assert_is_with_undone(&twelfth, &eleventh, |same| {
+            same.training.task_reset_rule = TaskResetRule::BestSinceReset;
+            same.curriculum.collecting_target_distance = SpawnShareCurriculum::default();
+        });
         // The thirteenth differs from it only in collecting's shaping.
         let thirteenth =
             TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch13.toml"))
                 .expect("the thirteenth config parses");
-        let mut same = thirteenth.clone();
-        same.output_dir = twelfth.output_dir.clone();
-        same.reward.audited.shaping = 1.0;
-        same.reward.audited.shaping_form = crate::reward::ShapingForm::Potential;
-        assert_eq!(same, twelfth);
+        assert_is_with_undone(&thirteenth, &twelfth, |same| {
+            same.reward.audited.shaping = 1.0;
+            same.reward.audited.shaping_form = crate::reward::ShapingForm::Potential;
+        });
         assert_eq!(thirteenth.reward.audited.shaping, 5.0);
         // The fourteenth differs from it only in where the updates go.
         let fourteenth =
@@ -1206,10 +1217,9 @@ mod tests {
                 .expect("the fourteenth config parses");
         assert_eq!(fourteenth.training.passed_task_update_share, 0.25);
         assert_eq!(fourteenth.training.passed_task_bar, 0.95);
-        let mut same = fourteenth.clone();
-        same.output_dir = twelfth.output_dir.clone();
-        same.training.passed_task_update_share = 1.0;
-        assert_eq!(same, twelfth);
+        assert_is_with_undone(&fourteenth, &twelfth, |same| {
+            same.training.passed_task_update_share = 1.0;
+        });
         // The fifteenth differs from it only in collecting's straggler weight.
         let fifteenth =
             TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch15.toml"))
@@ -1223,47 +1233,42 @@ mod tests {
                 .map(|d| d.straggler),
             Some(0.0)
         );
-        let mut same = fifteenth.clone();
-        same.output_dir = twelfth.output_dir.clone();
-        same.reward.audited.straggler = 0.0;
-        assert_eq!(same, twelfth);
+        assert_is_with_undone(&fifteenth, &twelfth, |same| {
+            same.reward.audited.straggler = 0.0;
+        });
         // The sixteenth differs from it only in the discount.
         let sixteenth =
             TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch16.toml"))
                 .expect("the sixteenth config parses");
         assert_eq!(sixteenth.ddpg.gamma, 0.998);
-        let mut same = sixteenth.clone();
-        same.output_dir = twelfth.output_dir.clone();
-        same.ddpg.gamma = 0.995;
-        assert_eq!(same, twelfth);
+        assert_is_with_undone(&sixteenth, &twelfth, |same| {
+            same.ddpg.gamma = 0.995;
+        });
         // The seventeenth differs from the fifteenth only in collecting's shaping.
         let seventeenth =
             TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch17.toml"))
                 .expect("the seventeenth config parses");
         assert_eq!(seventeenth.reward.audited.shaping, 5.0);
-        let mut same = seventeenth.clone();
-        same.output_dir = fifteenth.output_dir.clone();
-        same.reward.audited.shaping = 1.0;
-        same.reward.audited.shaping_form = crate::reward::ShapingForm::Potential;
-        assert_eq!(same, fifteenth);
+        assert_is_with_undone(&seventeenth, &fifteenth, |same| {
+            same.reward.audited.shaping = 1.0;
+            same.reward.audited.shaping_form = crate::reward::ShapingForm::Potential;
+        });
         // The eighteenth differs from the fifteenth only in the return's length.
         let eighteenth =
             TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch18.toml"))
                 .expect("the eighteenth config parses");
         assert_eq!(eighteenth.ddpg.n_step, 10);
-        let mut same = eighteenth.clone();
-        same.output_dir = fifteenth.output_dir.clone();
-        same.ddpg.n_step = 5;
-        assert_eq!(same, fifteenth);
+        assert_is_with_undone(&eighteenth, &fifteenth, |same| {
+            same.ddpg.n_step = 5;
+        });
         // The nineteenth differs from the fifteenth only in where the env steps go.
         let nineteenth =
             TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch19.toml"))
                 .expect("the nineteenth config parses");
         assert_eq!(nineteenth.training.passed_task_env_share, 0.25);
-        let mut same = nineteenth.clone();
-        same.output_dir = fifteenth.output_dir.clone();
-        same.training.passed_task_env_share = 1.0;
-        assert_eq!(same, fifteenth);
+        assert_is_with_undone(&nineteenth, &fifteenth, |same| {
+            same.training.passed_task_env_share = 1.0;
+        });
         // The twentieth differs from the nineteenth only in the exploration noise's fall; a
         // window that runs backwards, or a negative noise, is refused by name.
         let twentieth =
@@ -1272,22 +1277,20 @@ mod tests {
         assert_eq!(twentieth.ddpg.exploration_noise_final, Some(0.1));
         assert_eq!(twentieth.ddpg.exploration_noise_at(0.0), 0.3);
         assert!((twentieth.ddpg.exploration_noise_at(0.9) - 0.1).abs() < 1e-6);
-        let mut same = twentieth.clone();
-        same.output_dir = nineteenth.output_dir.clone();
-        same.ddpg.exploration_noise_final = None;
-        same.ddpg.exploration_noise_decay_from = 0.0;
-        same.ddpg.exploration_noise_decay_to = 1.0;
-        assert_eq!(same, nineteenth);
+        assert_is_with_undone(&twentieth, &nineteenth, |same| {
+            same.ddpg.exploration_noise_final = None;
+            same.ddpg.exploration_noise_decay_from = 0.0;
+            same.ddpg.exploration_noise_decay_to = 1.0;
+        });
         // The twenty-first differs from the twentieth only in collecting's approach term, the
         // twenty-second only in collecting's credit (per target, weight 2).
         let twenty_first =
             TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch21.toml"))
                 .expect("the twenty-first config parses");
         assert_eq!(twenty_first.reward.audited.approach, 1.0);
-        let mut same = twenty_first.clone();
-        same.output_dir = twentieth.output_dir.clone();
-        same.reward.audited.approach = 0.0;
-        assert_eq!(same, twentieth);
+        assert_is_with_undone(&twenty_first, &twentieth, |same| {
+            same.reward.audited.approach = 0.0;
+        });
         let twenty_second =
             TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch22.toml"))
                 .expect("the twenty-second config parses");
@@ -1299,11 +1302,10 @@ mod tests {
                 .as_ref()
                 .is_some_and(|d| d.credit_per_target)
         );
-        let mut same = twenty_second.clone();
-        same.output_dir = twentieth.output_dir.clone();
-        same.reward.audited.credit_per_target = false;
-        same.reward.audited.credit = 5.0;
-        assert_eq!(same, twentieth);
+        assert_is_with_undone(&twenty_second, &twentieth, |same| {
+            same.reward.audited.credit_per_target = false;
+            same.reward.audited.credit = 5.0;
+        });
         // The twenty-third differs from the twentieth only in collecting's excursions, the
         // twenty-fourth only in the twin critics' target, the twenty-fifth (below) only in
         // the target smoothing's width.
@@ -1315,48 +1317,43 @@ mod tests {
             twenty_third.training.excursion_tasks,
             vec![Task::Collecting]
         );
-        let mut same = twenty_third.clone();
-        same.output_dir = twentieth.output_dir.clone();
-        same.training.excursion_rate = 0.0;
-        same.training.excursion_radius_m = [5.0, 25.0];
-        same.training.excursion_max_steps = 40;
-        same.training.excursion_tasks.clear();
-        assert_eq!(same, twentieth);
+        assert_is_with_undone(&twenty_third, &twentieth, |same| {
+            same.training.excursion_rate = 0.0;
+            same.training.excursion_radius_m = [5.0, 25.0];
+            same.training.excursion_max_steps = 40;
+            same.training.excursion_tasks.clear();
+        });
         let twenty_fourth =
             TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch24.toml"))
                 .expect("the twenty-fourth config parses");
         assert_eq!(twenty_fourth.ddpg.twin_min_weight, 0.5);
-        let mut same = twenty_fourth.clone();
-        same.output_dir = twentieth.output_dir.clone();
-        same.ddpg.twin_min_weight = 1.0;
-        assert_eq!(same, twentieth);
+        assert_is_with_undone(&twenty_fourth, &twentieth, |same| {
+            same.ddpg.twin_min_weight = 1.0;
+        });
         let twenty_fifth =
             TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch25.toml"))
                 .expect("the twenty-fifth config parses");
         assert_eq!(twenty_fifth.ddpg.target_noise, 0.05);
-        let mut same = twenty_fifth.clone();
-        same.output_dir = twentieth.output_dir.clone();
-        same.ddpg.target_noise = 0.2;
-        same.ddpg.target_noise_clip = 0.5;
-        assert_eq!(same, twentieth);
+        assert_is_with_undone(&twenty_fifth, &twentieth, |same| {
+            same.ddpg.target_noise = 0.2;
+            same.ddpg.target_noise_clip = 0.5;
+        });
         // The twenty-sixth differs from the twentieth only in the layers' width.
         let twenty_sixth =
             TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch26.toml"))
                 .expect("the twenty-sixth config parses");
         assert_eq!(twenty_sixth.network.hidden, 192);
-        let mut same = twenty_sixth.clone();
-        same.output_dir = twentieth.output_dir.clone();
-        same.network.hidden = 128;
-        assert_eq!(same, twentieth);
+        assert_is_with_undone(&twenty_sixth, &twentieth, |same| {
+            same.network.hidden = 128;
+        });
         // The twenty-seventh differs from the twenty-sixth only in the training-time check's size.
         let twenty_seventh =
             TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch27.toml"))
                 .expect("the twenty-seventh config parses");
         assert_eq!(twenty_seventh.eval.episodes, 24);
-        let mut same = twenty_seventh.clone();
-        same.output_dir = twenty_sixth.output_dir.clone();
-        same.eval.episodes = 8;
-        assert_eq!(same, twenty_sixth);
+        assert_is_with_undone(&twenty_seventh, &twenty_sixth, |same| {
+            same.eval.episodes = 8;
+        });
         assert_each_edit_is_refused(
             include_str!("../configs/mtddpg-scratch24.toml"),
             &[(
@@ -1461,14 +1458,13 @@ mod tests {
         // Everything else is the eighth config's.
         let eighth = TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch8.toml"))
             .expect("the eighth config parses");
-        let mut same = file.clone();
-        same.output_dir = eighth.output_dir.clone();
-        same.training.task_reset_after_task_env_steps = 0;
-        same.training.task_reset_below = eighth.training.task_reset_below;
-        same.training.task_resets_max = eighth.training.task_resets_max;
-        same.training.task_reset_clears_replay = false;
-        same.training.task_reset_warmup_steps = 0;
-        assert_eq!(same, eighth);
+        assert_is_with_undone(&file, &eighth, |same| {
+            same.training.task_reset_after_task_env_steps = 0;
+            same.training.task_reset_below = eighth.training.task_reset_below;
+            same.training.task_resets_max = eighth.training.task_resets_max;
+            same.training.task_reset_clears_replay = false;
+            same.training.task_reset_warmup_steps = 0;
+        });
         assert_each_edit_is_refused(
             text,
             &[
