@@ -1354,6 +1354,18 @@ mod tests {
         assert_is_with_undone(&twenty_seventh, &twenty_sixth, |same| {
             same.eval.episodes = 8;
         });
+        // The twenty-eighth differs from the twenty-seventh only in the shape of its layers.
+        let twenty_eighth =
+            TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch28.toml"))
+                .expect("the twenty-eighth config parses");
+        assert_eq!(
+            (twenty_eighth.network.hidden, twenty_eighth.network.shared_layers),
+            (128, 2)
+        );
+        assert_is_with_undone(&twenty_eighth, &twenty_seventh, |same| {
+            same.network.hidden = 192;
+            same.network.shared_layers = 1;
+        });
         assert_each_edit_is_refused(
             include_str!("../configs/mtddpg-scratch24.toml"),
             &[(
