@@ -1359,7 +1359,10 @@ mod tests {
             TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch28.toml"))
                 .expect("the twenty-eighth config parses");
         assert_eq!(
-            (twenty_eighth.network.hidden, twenty_eighth.network.shared_layers),
+            (
+                twenty_eighth.network.hidden,
+                twenty_eighth.network.shared_layers
+            ),
             (128, 2)
         );
         assert_is_with_undone(&twenty_eighth, &twenty_seventh, |same| {
