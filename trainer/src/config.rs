@@ -1369,6 +1369,20 @@ mod tests {
             same.network.hidden = 192;
             same.network.shared_layers = 1;
         });
+        // The twenty-ninth differs from the twenty-seventh only in its centralised critic.
+        let twenty_ninth =
+            TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch29.toml"))
+                .expect("the twenty-ninth config parses");
+        assert_eq!(
+            (
+                twenty_ninth.ddpg.centralised_critic,
+                twenty_ninth.ddpg.critic_max_others
+            ),
+            (true, 7)
+        );
+        assert_is_with_undone(&twenty_ninth, &twenty_seventh, |same| {
+            same.ddpg.centralised_critic = false;
+        });
         assert_each_edit_is_refused(
             include_str!("../configs/mtddpg-scratch24.toml"),
             &[(
