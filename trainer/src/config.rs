@@ -1383,6 +1383,29 @@ mod tests {
         assert_is_with_undone(&twenty_ninth, &twenty_seventh, |same| {
             same.ddpg.centralised_critic = false;
         });
+        // The thirtieth differs from the twenty-seventh only in its leave penalty.
+        let thirtieth =
+            TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch30.toml"))
+                .expect("the thirtieth config parses");
+        let driving_penalty = |c: &TrainConfig| {
+            c.reward
+                .audited_driving
+                .as_ref()
+                .map(|d| d.leave_penalty_horizons)
+        };
+        assert_eq!(
+            (
+                thirtieth.reward.audited.leave_penalty_horizons,
+                driving_penalty(&thirtieth)
+            ),
+            (1.25, Some(1.25))
+        );
+        assert_is_with_undone(&thirtieth, &twenty_seventh, |same| {
+            same.reward.audited.leave_penalty_horizons = 2.0;
+            if let Some(d) = same.reward.audited_driving.as_mut() {
+                d.leave_penalty_horizons = 2.0;
+            }
+        });
         assert_each_edit_is_refused(
             include_str!("../configs/mtddpg-scratch24.toml"),
             &[(

@@ -58,6 +58,7 @@ fn the_from_scratch_configs_pass_the_audit() {
         "mtddpg-scratch17.toml",
         "mtddpg-scratch21.toml",
         "mtddpg-scratch22.toml",
+        "mtddpg-scratch30.toml",
     ] {
         passes(name);
     }
