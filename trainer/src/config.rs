@@ -1406,6 +1406,22 @@ mod tests {
                 d.leave_penalty_horizons = 2.0;
             }
         });
+        // The thirty-first differs from the thirtieth only in how often each flock size is drawn.
+        let thirty_first =
+            TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch31.toml"))
+                .expect("the thirty-first config parses");
+        let sizes = |c: &TrainConfig| {
+            c.curriculum
+                .stages
+                .iter()
+                .map(|s| s.targets.clone())
+                .collect::<Vec<_>>()
+        };
+        assert_eq!(sizes(&thirty_first), vec![vec![4, 4, 8, 8, 16]]);
+        assert_eq!(sizes(&thirtieth), vec![vec![4, 8, 16]]);
+        assert_is_with_undone(&thirty_first, &thirtieth, |same| {
+            same.curriculum.stages[0].targets = vec![4, 8, 16];
+        });
         assert_each_edit_is_refused(
             include_str!("../configs/mtddpg-scratch24.toml"),
             &[(
