@@ -518,6 +518,17 @@ pub struct EvalConfig {
     /// (`["driving", 16, 4]`); M = 0 is adaptive.
     #[serde(with = "eval_triples")]
     pub scenarios: Vec<EvalScenario>,
+    /// When above 0: the this-many best checkpoints by the training-time check are kept as
+    /// finalists (`finalist-<env steps>.safetensors`), and at the end of the run the one that
+    /// scores best on a second, independent episode set becomes `best.safetensors`. The check
+    /// reads some forty checkpoints on one set, so its best reads high by luck; the second set
+    /// has not been chosen on. 0: off (the check's own best is kept).
+    pub finalists: usize,
+    /// Episodes per scenario of the finalists' episode set.
+    pub final_episodes: usize,
+    /// The finalists' episode seeds are `final_seed_base + k`: apart from the check's and from
+    /// every report set.
+    pub final_seed_base: u64,
 }
 
 impl EvalConfig {
@@ -569,6 +580,9 @@ impl Default for EvalConfig {
             every_task_env_steps: 0,
             episodes: 8,
             seed_base: 1_000_000_000,
+            finalists: 0,
+            final_episodes: 48,
+            final_seed_base: 6_000_000_000,
             scenarios: [
                 (Task::Driving, 16, 4),
                 (Task::Driving, 64, 4),
@@ -1043,6 +1057,24 @@ impl TrainConfig {
                 "needs eval.every_task_env_steps above 0 (it reads each task's evaluations)",
             );
         }
+        let e = &self.eval;
+        if e.finalists > 0 {
+            if e.final_episodes == 0 {
+                return bad(
+                    "eval.final_episodes",
+                    "must be at least 1 when eval.finalists is",
+                );
+            }
+            // The second set is worth having only if the check has not already seen it.
+            let check = e.seed_base..e.seed_base.saturating_add(e.episodes as u64);
+            let last = e.final_seed_base.saturating_add(e.final_episodes as u64);
+            if e.final_seed_base < check.end && check.start < last {
+                return bad(
+                    "eval.final_seed_base",
+                    "the finalists' episodes overlap the training-time check's (eval.seed_base)",
+                );
+            }
+        }
         let g = &self.curriculum.driving_goal_distance;
         if !(g.first_share > 0.0 && g.first_share <= 1.0) {
             return bad(
@@ -1422,6 +1454,36 @@ mod tests {
         assert_is_with_undone(&thirty_first, &thirtieth, |same| {
             same.curriculum.stages[0].targets = vec![4, 8, 16];
         });
+        // The thirty-second differs from the thirty-first only in how the kept checkpoint is chosen.
+        let thirty_second =
+            TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch32.toml"))
+                .expect("the thirty-second config parses");
+        let e = &thirty_second.eval;
+        assert_eq!(
+            (e.finalists, e.final_episodes, e.final_seed_base),
+            (5, 64, 6_000_000_000)
+        );
+        assert_eq!(thirty_first.eval.finalists, 0);
+        assert_is_with_undone(&thirty_second, &thirty_first, |same| {
+            same.eval.finalists = 0;
+            same.eval.final_episodes = EvalConfig::default().final_episodes;
+            same.eval.final_seed_base = EvalConfig::default().final_seed_base;
+        });
+        assert_each_edit_is_refused(
+            include_str!("../configs/mtddpg-scratch32.toml"),
+            &[
+                (
+                    "final_episodes = 64",
+                    "final_episodes = 0",
+                    "eval.final_episodes",
+                ),
+                (
+                    "final_seed_base = 6_000_000_000",
+                    "final_seed_base = 999_999_990",
+                    "eval.final_seed_base",
+                ),
+            ],
+        );
         assert_each_edit_is_refused(
             include_str!("../configs/mtddpg-scratch24.toml"),
             &[(

@@ -48,6 +48,7 @@ pub mod distill;
 pub mod eval;
 pub mod evolve;
 pub mod export;
+pub mod finalists;
 pub mod network;
 pub mod nn;
 pub mod policy;

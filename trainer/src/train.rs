@@ -10,13 +10,17 @@
 //!    curriculum stage in force.
 //! 3. **Evaluation** on held-out seeds every `eval.every_updates` updates (and after the warm
 //!    start); the best actor by success rate, then time, is kept in `best.safetensors`.
+//!    With `eval.finalists`, the few best are kept and, at the end, the one that scores best
+//!    on a second episode set replaces it ([`crate::finalists`]).
 //! 4. **Evolution** (switchable, [`crate::evolve`]): evolution strategies on each task's own
 //!    layers of the best actor, scored by completion time over the lower bound; the result is
 //!    `evolved.safetensors` (the best checkpoint with the evolved actor), which is what gets
 //!    exported. A resumed run that finished MTDDPG runs this stage again from `best.safetensors`.
 //!
 //! Output in `output_dir`: `last.safetensors` (every `checkpoint_every_s` seconds and at the
-//! end, for `--resume`), `best.safetensors`, `evolved.safetensors`, `log.csv`, `curve.png`.
+//! end, for `--resume`), `best.safetensors`, `evolved.safetensors`, `log.csv`, `curve.png`,
+//! `eval.csv`; with finalists also `finalist-<env steps>.safetensors`, `finalists.csv` and
+//! `finalists-eval.csv`.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -34,6 +38,7 @@ use crate::config::{TaskResetRule, TrainConfig};
 use crate::ddpg::{ACTION_DIM, Agent};
 use crate::eval::{EvalRow, EvalScenario, better, evaluate_flat, score, task_success};
 use crate::evolve::{Fitness, evolve_task};
+use crate::finalists::{self, Finalist};
 use crate::nn::{Adam, AdamConfig};
 use crate::policy::ActorPolicy;
 use crate::replay::{Batch, ReplayBuffer};
@@ -316,6 +321,26 @@ fn append_eval_rows(
     Ok(())
 }
 
+/// Each finalist's rows on the second episode set, as `eval.csv`'s columns.
+pub const FINALISTS_EVAL_FILE: &str = "finalists-eval.csv";
+
+/// Removes the file at `path`; one already gone is fine.
+fn remove_if_there(path: &Path) -> Result<(), TrainError> {
+    match std::fs::remove_file(path) {
+        Ok(()) => Ok(()),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(()),
+        Err(e) => Err(ReportError::from(e).into()),
+    }
+}
+
+/// Writes `text` beside `path` and renames it over, so a crash mid-write leaves the old file whole.
+fn write_atomically(path: &Path, text: &str) -> Result<(), TrainError> {
+    let partial = path.with_extension("partial");
+    std::fs::write(&partial, text.as_bytes()).map_err(ReportError::from)?;
+    std::fs::rename(&partial, path).map_err(ReportError::from)?;
+    Ok(())
+}
+
 /// The columns of `eval.csv`.
 pub const EVAL_CSV_HEADER: &str = "env_steps,task_env_steps,task,targets,herders,episodes,success_rate,mean_time_s,mean_time_ratio";
 
@@ -512,6 +537,8 @@ struct Run<'a> {
     last_eval: Vec<EvalRow>,
     /// Pause the DDPG phase at this many env steps (a restart candidate's trial).
     stop_at: Option<u64>,
+    /// The best checkpoints by the check, best first (`eval.finalists`; empty when off).
+    finalists: Vec<Finalist>,
 }
 
 impl Run<'_> {
@@ -553,6 +580,7 @@ impl Run<'_> {
             self.progress.best_time_ratio = s.1;
             checkpoint::save(&self.dir().join("best.safetensors"), &self.checkpoint())?;
         }
+        self.keep_finalist(s)?;
         observer.note(&format!(
             "eval at {} env steps / {} updates: success {:.1}%, time {:.2}x lower bound{}",
             self.progress.env_steps,
@@ -581,6 +609,117 @@ impl Run<'_> {
             }
         }
         self.last_eval = rows;
+        Ok(())
+    }
+
+    /// Keeps the checkpoint just checked (score `s`) among the finalists if it is one of the
+    /// best `eval.finalists` so far; the one it pushes out is deleted.
+    fn keep_finalist(&mut self, s: (f64, f64)) -> Result<(), TrainError> {
+        let capacity = self.config.eval.finalists;
+        if capacity == 0 {
+            return Ok(());
+        }
+        let env_steps = self.progress.env_steps;
+        let dir = self.dir();
+        let admission = finalists::admit(
+            &mut self.finalists,
+            Finalist {
+                env_steps,
+                check: s,
+            },
+            capacity,
+        );
+        if admission.kept {
+            checkpoint::save(&finalists::file(&dir, env_steps), &self.checkpoint())?;
+        }
+        if let Some(gone) = admission.dropped {
+            remove_if_there(&finalists::file(&dir, gone))?;
+        }
+        write_atomically(
+            &dir.join(finalists::CSV_FILE),
+            &finalists::to_csv(&self.finalists, None),
+        )
+    }
+
+    /// The finalists a resumed run goes on with: those checked before the step it resumes
+    /// from whose files are there; the rest (a future the run now lives again) are deleted.
+    fn reload_finalists(&mut self) -> Result<(), TrainError> {
+        let dir = self.dir();
+        let text = match std::fs::read_to_string(dir.join(finalists::CSV_FILE)) {
+            Ok(text) => text,
+            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(()),
+            Err(e) => return Err(ReportError::from(e).into()),
+        };
+        for f in finalists::from_csv(&text) {
+            let path = finalists::file(&dir, f.env_steps);
+            if f.env_steps <= self.progress.env_steps && path.exists() {
+                self.finalists.push(f);
+            } else {
+                remove_if_there(&path)?;
+            }
+        }
+        Ok(())
+    }
+
+    /// The end-of-run choice: herds every finalist on the second episode set and copies the
+    /// best of them by that set to `best.safetensors`; the scores go to `finalists.csv` and
+    /// each one's rows to `finalists-eval.csv`.
+    fn choose_finalist(&mut self, observer: &mut dyn Observer) -> Result<(), TrainError> {
+        if self.finalists.is_empty() {
+            return Ok(());
+        }
+        let e = &self.config.eval;
+        let dir = self.dir();
+        let mut scores = Vec::with_capacity(self.finalists.len());
+        let mut rows_of = Vec::with_capacity(self.finalists.len());
+        for f in &self.finalists {
+            let c = checkpoint::load(&finalists::file(&dir, f.env_steps))?;
+            let actor = &c.agent.actor;
+            let rows = evaluate_flat(
+                &self.eval_scenarios,
+                e.final_episodes,
+                e.final_seed_base,
+                || ActorPolicy::new(actor),
+            )?;
+            let s = score(&rows);
+            observer.note(&format!(
+                "finalist at {} env steps: check {:.1}% at {:.2}x, final set {:.1}% at {:.2}x",
+                f.env_steps,
+                100.0 * f.check.0,
+                f.check.1,
+                100.0 * s.0,
+                s.1
+            ));
+            scores.push(s);
+            rows_of.push((f.env_steps, c.progress.task_env_steps, rows));
+        }
+        let Some(chosen) = finalists::choose(&scores) else {
+            return Ok(());
+        };
+        let winner = self.finalists[chosen];
+        std::fs::copy(
+            finalists::file(&dir, winner.env_steps),
+            dir.join("best.safetensors"),
+        )
+        .map_err(ReportError::from)?;
+        observer.note(&format!(
+            "finalists: the one at {} env steps is kept as best.safetensors ({:.1}% at {:.2}x on {} episodes a scenario it was not chosen on)",
+            winner.env_steps,
+            100.0 * scores[chosen].0,
+            scores[chosen].1,
+            e.final_episodes
+        ));
+        write_atomically(
+            &dir.join(finalists::CSV_FILE),
+            &finalists::to_csv(&self.finalists, Some((&scores, chosen))),
+        )?;
+        let eval_path = dir.join(FINALISTS_EVAL_FILE);
+        remove_if_there(&eval_path)?;
+        // In step order, so that each append keeps the rows before it.
+        rows_of.sort_by_key(|r| r.0);
+        for (env_steps, task_env_steps, rows) in &rows_of {
+            append_eval_rows(&eval_path, *env_steps, task_env_steps, rows)?;
+        }
         Ok(())
     }
 
@@ -1170,7 +1309,11 @@ fn start_run<'a>(
         eval_scenarios,
         last_eval: Vec::new(),
         stop_at: None,
+        finalists: Vec::new(),
     };
+    if config.eval.finalists > 0 && run.progress.env_steps > 0 {
+        run.reload_finalists()?;
+    }
     if config.warm_start.enabled && !run.progress.warm_start_done {
         run.warm_start(observer)?;
     } else if config.warm_start.enabled && config.warm_start.imitation_weight > 0.0 {
@@ -1189,6 +1332,7 @@ fn finish_run(mut run: Run<'_>, observer: &mut dyn Observer) -> Result<TrainOutc
     let seconds_per_update = run.ddpg(observer)?;
     run.evaluate(observer)?;
     run.save_last()?;
+    run.choose_finalist(observer)?;
     let evolution = if config.evolution.enabled {
         let mut best = checkpoint::load(&dir.join("best.safetensors"))?;
         // The stage's clock starts where the run's ends.

@@ -368,3 +368,99 @@ fn restarts_try_candidates_and_continue_the_best_within_the_budget() {
     assert!(err.contains("restart_trial_env_steps"), "{err}");
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// With finalists on, the best few checkpoints by the check are kept on disk and no more, the
+/// end of the run copies the one the second episode set prefers to `best.safetensors`, and a
+/// resumed run goes on with the finalists it had.
+#[test]
+fn finalists_are_kept_and_one_is_chosen_on_the_second_set() {
+    let dir = std::env::temp_dir().join(format!("skyherd-finalists-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&dir);
+    let mut config = TrainConfig::from_toml_str(&format!(
+        r#"
+        seed = 7
+        output_dir = "{}"
+        [network]
+        hidden = 16
+        [ddpg]
+        planar = true
+        [training]
+        env_steps = 400
+        envs = 2
+        episode_step_limit = 40
+        learning_starts = 50
+        random_warmup_steps = 100
+        wall_clock_limit_s = 60.0
+        [curriculum]
+        stages = [{{ from_progress = 0.0, targets = [2], herders = [2] }}]
+        [warm_start]
+        enabled = false
+        [reward]
+        kind = "audited"
+        [eval]
+        every_task_env_steps = 50
+        episodes = 1
+        scenarios = [["driving", 2, 2], ["collecting", 2, 2]]
+        finalists = 2
+        final_episodes = 2
+        final_seed_base = 6_000_000_000
+        [evolution]
+        enabled = false
+        "#,
+        dir.display()
+    ))
+    .expect("finalists config");
+    let on_disk = |dir: &std::path::Path| {
+        let mut steps: Vec<u64> = std::fs::read_dir(dir)
+            .expect("output dir")
+            .filter_map(|e| {
+                let name = e.ok()?.file_name().into_string().ok()?;
+                name.strip_prefix("finalist-")?
+                    .strip_suffix(".safetensors")?
+                    .parse()
+                    .ok()
+            })
+            .collect();
+        steps.sort_unstable();
+        steps
+    };
+    for steps in [400, 600] {
+        config.training.env_steps = steps;
+        let resume = (steps > 400)
+            .then(|| checkpoint::load(&dir.join("last.safetensors")).expect("last checkpoint"));
+        train(&config, resume, &mut Quiet).expect("training with finalists runs");
+        let csv = std::fs::read_to_string(dir.join("finalists.csv")).expect("finalists.csv");
+        let listed = skyherd_trainer::finalists::from_csv(&csv);
+        assert_eq!(listed.len(), 2, "{csv}");
+        let mut listed_steps: Vec<u64> = listed.iter().map(|f| f.env_steps).collect();
+        listed_steps.sort_unstable();
+        assert_eq!(on_disk(&dir), listed_steps, "{csv}");
+        // Every finalist has its final-set score and exactly one was chosen.
+        let chosen: Vec<&str> = csv
+            .lines()
+            .skip(1)
+            .filter(|l| l.ends_with(",true"))
+            .collect();
+        assert_eq!(chosen.len(), 1, "{csv}");
+        assert_eq!(
+            csv.lines().filter(|l| l.ends_with(",false")).count(),
+            1,
+            "{csv}"
+        );
+        let winner: u64 = chosen[0].split(',').next().unwrap().parse().unwrap();
+        assert_eq!(
+            std::fs::read(dir.join("best.safetensors")).unwrap(),
+            std::fs::read(skyherd_trainer::finalists::file(&dir, winner)).unwrap()
+        );
+        let rows = std::fs::read_to_string(dir.join("finalists-eval.csv")).expect("rows");
+        // One row per finalist and scenario, each of the second set's two episodes.
+        assert_eq!(rows.lines().count(), 1 + 2 * 2, "{rows}");
+        assert!(
+            rows.lines()
+                .skip(1)
+                .all(|l| l.split(',').nth(5) == Some("2")),
+            "{rows}"
+        );
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
