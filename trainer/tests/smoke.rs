@@ -424,6 +424,11 @@ fn finalists_are_kept_and_one_is_chosen_on_the_second_set() {
         steps.sort_unstable();
         steps
     };
+    // Learning is the same step for step with finalists off: the choice only reads the actors.
+    let mut plain = config.clone();
+    plain.eval.finalists = 0;
+    plain.output_dir = dir.join("plain");
+    train(&plain, None, &mut Quiet).expect("training without finalists runs");
     for steps in [400, 600] {
         config.training.env_steps = steps;
         let resume = (steps > 400)
@@ -461,6 +466,14 @@ fn finalists_are_kept_and_one_is_chosen_on_the_second_set() {
                 .all(|l| l.split(',').nth(5) == Some("2")),
             "{rows}"
         );
+        if steps == 400 {
+            let with = checkpoint::load(&dir.join("last.safetensors")).expect("last");
+            let without =
+                checkpoint::load(&plain.output_dir.join("last.safetensors")).expect("last");
+            assert_eq!(with.agent.actor, without.agent.actor);
+            assert_eq!(with.agent.critic, without.agent.critic);
+            assert!(!plain.output_dir.join("finalists.csv").exists());
+        }
     }
     let _ = std::fs::remove_dir_all(&dir);
 }
