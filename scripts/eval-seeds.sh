@@ -19,6 +19,8 @@ for seed in "$@"; do
     cp "$runs/mtddpg-seed$seed/restarts.json" "$out/restarts-seed$seed.json"
   fi
   cp "$dir/eval.csv" "$out/eval-seed$seed.csv"
+  # A run with finalists (eval.finalists) records their scores and which became best.safetensors.
+  [ -f "$dir/finalists.csv" ] && cp "$dir/finalists.csv" "$out/finalists-seed$seed.csv"
   # The int8 models stay beside their runs; the one shipped is copied to models/ by hand.
   nice "$trainer" export --checkpoint "$dir/best.safetensors" --out "$dir/int8.skym" \
     > "$out/export-seed$seed.txt" 2>&1

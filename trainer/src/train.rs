@@ -697,6 +697,9 @@ impl Run<'_> {
             return Ok(());
         };
         let winner = self.finalists[chosen];
+        // The kept checkpoint's check score, as a run without finalists reports its best's.
+        self.progress.best_success = winner.check.0;
+        self.progress.best_time_ratio = winner.check.1;
         std::fs::copy(
             finalists::file(&dir, winner.env_steps),
             dir.join("best.safetensors"),
@@ -1331,8 +1334,8 @@ fn finish_run(mut run: Run<'_>, observer: &mut dyn Observer) -> Result<TrainOutc
     let dir = config.output_dir.clone();
     let seconds_per_update = run.ddpg(observer)?;
     run.evaluate(observer)?;
-    run.save_last()?;
     run.choose_finalist(observer)?;
+    run.save_last()?;
     let evolution = if config.evolution.enabled {
         let mut best = checkpoint::load(&dir.join("best.safetensors"))?;
         // The stage's clock starts where the run's ends.
