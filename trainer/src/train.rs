@@ -285,11 +285,7 @@ fn append_eval_rows(
     task_env_steps: &[u64; Task::COUNT],
     rows: &[EvalRow],
 ) -> Result<(), TrainError> {
-    let old = match std::fs::read_to_string(path) {
-        Ok(text) => text,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => String::new(),
-        Err(e) => return Err(ReportError::from(e).into()),
-    };
+    let old = read_if_there(path)?;
     let mut text = String::with_capacity(old.len() + 128 * rows.len());
     text.push_str(EVAL_CSV_HEADER);
     text.push('\n');
@@ -314,11 +310,8 @@ fn append_eval_rows(
             r.mean_time_ratio
         ));
     }
-    // Written beside and renamed over, so that a crash mid-write leaves the old curve whole.
-    let partial = path.with_extension("csv.partial");
-    std::fs::write(&partial, text.as_bytes()).map_err(ReportError::from)?;
-    std::fs::rename(&partial, path).map_err(ReportError::from)?;
-    Ok(())
+    // A crash mid-write leaves the old curve whole.
+    write_atomically(path, &text)
 }
 
 /// Each finalist's rows on the second episode set, as `eval.csv`'s columns.
@@ -329,6 +322,15 @@ fn remove_if_there(path: &Path) -> Result<(), TrainError> {
     match std::fs::remove_file(path) {
         Ok(()) => Ok(()),
         Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(()),
+        Err(e) => Err(ReportError::from(e).into()),
+    }
+}
+
+/// The text of the file at `path`; empty when there is none yet.
+fn read_if_there(path: &Path) -> Result<String, TrainError> {
+    match std::fs::read_to_string(path) {
+        Ok(text) => Ok(text),
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => Ok(String::new()),
         Err(e) => Err(ReportError::from(e).into()),
     }
 }
@@ -645,11 +647,7 @@ impl Run<'_> {
     /// from whose files are there; the rest (a future the run now lives again) are deleted.
     fn reload_finalists(&mut self) -> Result<(), TrainError> {
         let dir = self.dir();
-        let text = match std::fs::read_to_string(dir.join(finalists::CSV_FILE)) {
-            Ok(text) => text,
-            Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(()),
-            Err(e) => return Err(ReportError::from(e).into()),
-        };
+        let text = read_if_there(&dir.join(finalists::CSV_FILE))?;
         for f in finalists::from_csv(&text) {
             let path = finalists::file(&dir, f.env_steps);
             if f.env_steps <= self.progress.env_steps && path.exists() {
