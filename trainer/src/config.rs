@@ -1469,6 +1469,27 @@ mod tests {
             same.eval.final_episodes = EvalConfig::default().final_episodes;
             same.eval.final_seed_base = EvalConfig::default().final_seed_base;
         });
+        // The thirty-third differs from the thirty-second only in having no collecting curriculum.
+        let thirty_third =
+            TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch33.toml"))
+                .expect("the thirty-third config parses");
+        assert_eq!(
+            thirty_third.curriculum.collecting_target_distance,
+            SpawnShareCurriculum::default()
+        );
+        assert_eq!(
+            thirty_second
+                .curriculum
+                .collecting_target_distance
+                .first_share,
+            0.2
+        );
+        assert_is_with_undone(&thirty_third, &thirty_second, |same| {
+            same.curriculum.collecting_target_distance = SpawnShareCurriculum {
+                first_share: 0.2,
+                full_at_progress: 0.3,
+            };
+        });
         assert_each_edit_is_refused(
             include_str!("../configs/mtddpg-scratch32.toml"),
             &[
