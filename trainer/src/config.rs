@@ -709,6 +709,15 @@ pub struct LoopConfig {
     /// The tasks whose environments fly excursions.
     #[serde(with = "task_list_serde")]
     pub excursion_tasks: Vec<Task>,
+    /// Action repeat: the actor decides every this many simulator steps and each herder holds
+    /// the velocity it chose until the next decision; one transition spans the held steps,
+    /// its reward their discounted sum and its bootstrap `gamma` to their number
+    /// (`rollout::Rollouts::step`, `replay::NStep`), and `ddpg.n_step` counts decisions. A
+    /// one-second step moves a herder at most 5 m, so one action changes the return little
+    /// and the critic's action gradient is small beside its errors; holding it longer makes
+    /// each decision count for more. Evaluation and flight still ask the actor every step.
+    /// 1: off (every step a decision).
+    pub action_repeat: usize,
 }
 
 /// Which evaluations decide that a task has stalled ([`LoopConfig::task_reset_after_task_env_steps`]).
@@ -764,6 +773,9 @@ mod task_list_serde {
     }
 }
 
+/// Largest `training.action_repeat` accepted (ten seconds of held flight at the paper's step).
+pub const MAX_ACTION_REPEAT: usize = 10;
+
 /// Largest flock drawn into the room layout.
 pub const ROOM_LAYOUT_MAX_TARGETS: usize = 64;
 
@@ -799,6 +811,7 @@ impl Default for LoopConfig {
             excursion_rate: 0.0,
             excursion_radius_m: [5.0, 25.0],
             excursion_max_steps: 40,
+            action_repeat: 1,
             excursion_tasks: Vec::new(),
         }
     }
@@ -1040,6 +1053,18 @@ impl TrainConfig {
             return bad(
                 "training.excursion_radius_m",
                 "must be [nearest, farthest] metres with 0 <= nearest <= farthest",
+            );
+        }
+        if !(1..=MAX_ACTION_REPEAT).contains(&t.action_repeat) {
+            return bad(
+                "training.action_repeat",
+                &format!("must be 1 to {MAX_ACTION_REPEAT} simulator steps per decision"),
+            );
+        }
+        if t.action_repeat > 1 && d.centralised_critic {
+            return bad(
+                "training.action_repeat",
+                "cannot be combined with ddpg.centralised_critic (its pooled context is per step)",
             );
         }
         if t.excursion_rate > 0.0 && (t.excursion_max_steps == 0 || t.excursion_tasks.is_empty()) {

@@ -291,6 +291,11 @@ impl ReplayBuffer {
 /// terminal every pending transition is emitted with its partial sum and `continues = 0` (no
 /// bootstrap past the end); at a truncation with its partial sum, the last state, and
 /// `continues = gamma^(k-1)` (bootstrapped: the episode was cut, not finished).
+///
+/// A step may span several simulator steps (an action held for them, `training.action_repeat`;
+/// [`OneStep::sim_steps`]): its reward is then their discounted sum, `n` counts such steps, and
+/// every discount runs over simulator steps, so a transition spanning `s` of them in all has
+/// `continues = gamma^(s-1)` and the next step's reward enters at `gamma^s`.
 #[derive(Clone, Debug)]
 pub struct NStep {
     n: usize,
@@ -305,7 +310,10 @@ struct Pending {
     action: Vec<f32>,
     context: Vec<f32>,
     sum: f32,
+    /// Steps pushed since it started (what `n` counts).
     steps: usize,
+    /// Simulator steps those span (the discount's exponent).
+    sim_steps: usize,
 }
 
 /// An n-step transition: `(obs, action, discounted reward sum, next_obs, continues)`, and the
@@ -343,6 +351,9 @@ pub struct OneStep<'a> {
     pub truncated: bool,
     /// The other herders pooled at `obs`, for a centralised critic (empty otherwise).
     pub context: &'a [f32],
+    /// Simulator steps this step spans (an action held over them, its `reward` their
+    /// discounted sum); 1 for a plain step.
+    pub sim_steps: usize,
 }
 
 impl NStep {
@@ -365,11 +376,14 @@ impl NStep {
             terminated,
             truncated,
             context,
+            sim_steps,
         } = step;
+        let sim_steps = sim_steps.max(1);
         // Every pending transition gains this step's reward at its own discount.
         for p in self.pending.iter_mut() {
-            p.sum += self.gamma.powi(p.steps as i32) * reward;
+            p.sum += self.gamma.powi(p.sim_steps as i32) * reward;
             p.steps += 1;
+            p.sim_steps += sim_steps;
         }
         self.pending.push_back(Pending {
             obs: obs.to_vec(),
@@ -377,6 +391,7 @@ impl NStep {
             context: context.to_vec(),
             sum: reward,
             steps: 1,
+            sim_steps,
         });
         let finish = |p: Pending, continues: f32| NStepTransition {
             obs: p.obs,
@@ -391,7 +406,7 @@ impl NStep {
                 let continues = if terminated {
                     0.0
                 } else {
-                    self.gamma.powi(p.steps as i32 - 1)
+                    self.gamma.powi(p.sim_steps as i32 - 1)
                 };
                 out.push(finish(p, continues));
             }
@@ -400,7 +415,7 @@ impl NStep {
         if self.pending.front().is_some_and(|p| p.steps >= self.n)
             && let Some(p) = self.pending.pop_front()
         {
-            let continues = self.gamma.powi(p.steps as i32 - 1);
+            let continues = self.gamma.powi(p.sim_steps as i32 - 1);
             out.push(finish(p, continues));
         }
     }
@@ -475,10 +490,47 @@ mod tests {
                 terminated: last && terminated,
                 truncated: last && !terminated,
                 context: &[],
+                sim_steps: 1,
             };
             acc.push(step, &mut out);
         }
         out
+    }
+
+    #[test]
+    fn held_steps_discount_over_simulator_steps() {
+        // Two-step returns over steps that each hold an action for 2 simulator steps (the
+        // last for 1: the episode was cut): discounts run over simulator steps.
+        let mut acc = NStep::new(2, 0.5);
+        let mut out = Vec::new();
+        let spans = [2, 2, 2, 1];
+        let rewards = [1.0, 2.0, 4.0, 8.0];
+        for (t, (&span, &r)) in spans.iter().zip(&rewards).enumerate() {
+            let last = t + 1 == spans.len();
+            let step = OneStep {
+                obs: &[t as f32],
+                action: &[0.0],
+                reward: r,
+                next_obs: &[t as f32 + 1.0],
+                terminated: false,
+                truncated: last,
+                context: &[],
+                sim_steps: span,
+            };
+            acc.push(step, &mut out);
+        }
+        assert_eq!(out.len(), 4);
+        // The first: its own 2 steps, then the next held step's reward at 0.5^2, and it
+        // bootstraps 4 simulator steps later: gamma * continues = 0.5^4.
+        assert_eq!((out[0].obs[0], out[0].next_obs[0]), (0.0, 2.0));
+        assert_eq!(out[0].reward, 1.0 + 0.25 * 2.0);
+        assert_eq!(out[0].continues, 0.125);
+        // Cut by the truncation: the third spans 2 + 1 simulator steps, the fourth 1.
+        assert_eq!(out[2].reward, 4.0 + 0.25 * 8.0);
+        assert_eq!(out[2].continues, 0.25);
+        assert_eq!((out[3].reward, out[3].continues), (8.0, 1.0));
+        // Steps of one simulator step each are plain n-step returns.
+        assert_eq!(run(2, &[1.0, 2.0, 4.0], false)[0].continues, 0.5);
     }
 
     #[test]

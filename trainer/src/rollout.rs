@@ -299,6 +299,26 @@ struct Slot {
     rule_method: Option<Method>,
     learner_return: f64,
     paper_return: f64,
+    /// The decision being held (`training.action_repeat` above 1), until its last step.
+    held: Option<Held>,
+}
+
+/// A decision held over several simulator steps: what was decided, on what, and the reward
+/// gathered since.
+struct Held {
+    /// The velocities flown while it holds (m/s, simulator frame).
+    velocities: Vec<[f64; 3]>,
+    /// Each herder's normalised action, as the replay keeps it.
+    actions: Vec<[f32; ACTION_DIM]>,
+    /// The features and frames the decision was taken on.
+    features: Vec<[f32; FEATURES]>,
+    frames: Vec<Option<LocalFrame>>,
+    /// Each herder's discounted reward sum over the steps held so far.
+    rewards: Vec<f32>,
+    /// `gamma` to the steps held so far.
+    discount: f32,
+    /// Simulator steps held so far.
+    sim_steps: usize,
 }
 
 /// Environments stepped together; slot `i` runs task `i % 2` (of the configured tasks)
@@ -320,6 +340,8 @@ pub struct Rollouts {
     /// The driving curriculum's floor on the pulled goal's distance, goal radii.
     min_centre_distance_radii: f64,
     excursions: Excursions,
+    /// Simulator steps a decision is held for (`training.action_repeat`).
+    action_repeat: usize,
     /// Environment steps taken (summed over slots).
     pub env_steps: u64,
 }
@@ -403,6 +425,7 @@ impl Rollouts {
                 .driving_goal_distance
                 .min_centre_distance_radii,
             excursions: Excursions::from_config(&config.training),
+            action_repeat: config.training.action_repeat.max(1),
             env_steps: 0,
         };
         for i in 0..count {
@@ -496,6 +519,7 @@ impl Rollouts {
             rule_method: None,
             learner_return: 0.0,
             paper_return: 0.0,
+            held: None,
         };
         observe(&mut self.observer, &mut slot, self.flight_rules);
         Ok(slot)
@@ -519,16 +543,22 @@ impl Rollouts {
         let mut finished = Vec::new();
         let mut velocities = Vec::new();
         let mut herder_rewards = Vec::new();
+        let repeat = self.action_repeat;
         for (i, slot_actions) in actions.iter().enumerate() {
             let slot = &mut self.slots[i];
             velocities.clear();
-            let limits = self
-                .flight_rules
-                .then(|| flight_limits(slot.env.observation()));
-            for (h, a) in slot_actions.iter().enumerate() {
-                let position = slot.env.observation().herders[h];
-                let v = flown_velocity(slot.frames[h], *a, limits.as_ref(), position);
-                velocities.push([f64::from(v[0]), f64::from(v[1]), f64::from(v[2])]);
+            if let Some(held) = &slot.held {
+                // Between decisions every herder flies what it last decided.
+                velocities.extend_from_slice(&held.velocities);
+            } else {
+                let limits = self
+                    .flight_rules
+                    .then(|| flight_limits(slot.env.observation()));
+                for (h, a) in slot_actions.iter().enumerate() {
+                    let position = slot.env.observation().herders[h];
+                    let v = flown_velocity(slot.frames[h], *a, limits.as_ref(), position);
+                    velocities.push([f64::from(v[0]), f64::from(v[1]), f64::from(v[2])]);
+                }
             }
             let centralised = self.ddpg.centralised_critic;
             let positions_before = if centralised {
@@ -543,9 +573,43 @@ impl Rollouts {
                 .step(&out, &slot.env, &velocities, &mut herder_rewards);
             slot.learner_return += herder_rewards.first().copied().map_or(0.0, f64::from);
             slot.paper_return += out.paper_reward;
-            let before = std::mem::take(&mut slot.features);
-            let before_frames = std::mem::take(&mut slot.frames);
+            let mut before = std::mem::take(&mut slot.features);
+            let mut before_frames = std::mem::take(&mut slot.frames);
             observe(&mut self.observer, slot, self.flight_rules);
+            let ended = out.terminated || out.truncated;
+            // What the transitions carry: this step's, or a held decision's once it ends.
+            let mut decided: &[[f32; ACTION_DIM]] = slot_actions;
+            let mut gathered: &[f32] = &herder_rewards;
+            let mut sim_steps = 1;
+            let finished_hold;
+            if repeat > 1 {
+                let gamma = self.gamma as f32;
+                let held = slot.held.get_or_insert_with(|| Held {
+                    velocities: velocities.clone(),
+                    actions: slot_actions.clone(),
+                    features: before.clone(),
+                    frames: before_frames.clone(),
+                    rewards: vec![0.0; herder_rewards.len()],
+                    discount: 1.0,
+                    sim_steps: 0,
+                });
+                for (sum, r) in held.rewards.iter_mut().zip(&herder_rewards) {
+                    *sum += held.discount * r;
+                }
+                held.discount *= gamma;
+                held.sim_steps += 1;
+                if held.sim_steps < repeat && !ended {
+                    continue;
+                }
+                finished_hold = slot.held.take();
+                if let Some(h) = &finished_hold {
+                    before = h.features.clone();
+                    before_frames = h.frames.clone();
+                    decided = &h.actions;
+                    gathered = &h.rewards;
+                    sim_steps = h.sim_steps;
+                }
+            }
             let task = slot.draw.task.index();
             for h in 0..before.len() {
                 if before_frames[h].is_none() || slot.frames[h].is_none() {
@@ -556,13 +620,13 @@ impl Rollouts {
                 }
                 // A buffer as wide as an older encoder's features keeps that prefix.
                 let w = replay[task].obs_dim();
-                let r = herder_rewards[h];
+                let r = gathered[h];
                 let max_others = self.ddpg.critic_max_others;
                 let (context, next_others) = if centralised {
                     let near = nearest_others(&positions_before, h, max_others, &before_frames);
                     let obs: Vec<f32> =
                         near.iter().flat_map(|&j| before[j][..w].to_vec()).collect();
-                    let acts: Vec<f32> = near.iter().flat_map(|&j| slot_actions[j]).collect();
+                    let acts: Vec<f32> = near.iter().flat_map(|&j| decided[j]).collect();
                     let after = &slot.env.world().herders;
                     let near_after = nearest_others(after, h, max_others, &slot.frames);
                     let next: Vec<f32> = near_after
@@ -577,12 +641,12 @@ impl Rollouts {
                     context: &context,
                     next_obs: &next_others,
                 };
-                if self.ddpg.n_step <= 1 {
+                if self.ddpg.n_step <= 1 && repeat == 1 {
                     let continues = if out.terminated { 0.0 } else { 1.0 };
                     if centralised {
                         replay[task].push_with_others(
                             &before[h][..w],
-                            &slot_actions[h],
+                            &decided[h],
                             r,
                             &slot.features[h][..w],
                             continues,
@@ -591,7 +655,7 @@ impl Rollouts {
                     } else {
                         replay[task].push(
                             &before[h][..w],
-                            &slot_actions[h],
+                            &decided[h],
                             r,
                             &slot.features[h][..w],
                             out.terminated,
@@ -601,12 +665,13 @@ impl Rollouts {
                     emitted.clear();
                     let step = OneStep {
                         obs: &before[h][..w],
-                        action: &slot_actions[h],
+                        action: &decided[h],
                         reward: r,
                         next_obs: &slot.features[h][..w],
                         terminated: out.terminated,
                         truncated: out.truncated,
                         context: &context,
+                        sim_steps,
                     };
                     slot.herders[h].nstep.push(step, &mut emitted);
                     for t in &emitted {
@@ -638,7 +703,7 @@ impl Rollouts {
                     let w = d[task].obs_dim();
                     d[task].push(
                         &before[h][..w],
-                        &slot_actions[h],
+                        &decided[h],
                         r,
                         &slot.features[h][..w],
                         false,
@@ -898,6 +963,7 @@ fn draw_in(
 mod tests {
     use super::*;
     use crate::network::MlpShape;
+    use crate::replay::Batch;
     use rand::SeedableRng;
 
     #[test]
@@ -1446,6 +1512,75 @@ mod tests {
                 .to_string()
                 .contains("excursion_tasks")
         );
+    }
+
+    #[test]
+    fn a_held_action_is_flown_for_its_steps_and_replayed_as_one_transition() {
+        let mut config = TrainConfig::default();
+        config.training.episode_step_limit = 7;
+        config.training.action_repeat = 3;
+        config.training.noise = false;
+        config.ddpg.gamma = 0.5;
+        let mut rng = ChaCha8Rng::seed_from_u64(1);
+        let actor = MultiTaskMlp::new(MlpShape::actor(FEATURES, 16, 1), &mut rng);
+        let mut draw = |_: &mut ChaCha8Rng, task| Draw::paper(task, 4, 3);
+        let mut rollouts =
+            Rollouts::new(2, &config, ChaCha8Rng::seed_from_u64(2), &mut draw).expect("envs");
+        let mut replay: Vec<ReplayBuffer> = (0..2)
+            .map(|_| ReplayBuffer::new(FEATURES, 3, 100))
+            .collect();
+        let mut moves = Vec::new();
+        for _ in 0..7 {
+            let before = rollouts.slots[0].env.world().herders[0];
+            // Noisy actions, so that a new decision flies a new velocity.
+            rollouts
+                .step(
+                    &Controller::Actor(&actor, 0.3),
+                    &mut replay,
+                    None,
+                    &mut draw,
+                )
+                .expect("step");
+            if moves.len() < 6 {
+                let after = rollouts.slots[0].env.world().herders[0];
+                moves.push([after[0] - before[0], after[1] - before[1]]);
+            }
+        }
+        // Steps 0-2 and 3-5 each fly one decision; the decisions differ.
+        let close = |a: [f64; 2], b: [f64; 2]| (a[0] - b[0]).hypot(a[1] - b[1]) < 1e-9;
+        assert!(
+            close(moves[0], moves[1]) && close(moves[1], moves[2]),
+            "{moves:?}"
+        );
+        assert!(
+            close(moves[3], moves[4]) && close(moves[4], moves[5]),
+            "{moves:?}"
+        );
+        assert!(
+            !close(moves[2], moves[3]),
+            "a new decision at step 3: {moves:?}"
+        );
+        // Seven steps: two holds of three and one of one (cut by the step limit), a transition
+        // each per herder, bootstrapped over the simulator steps they span.
+        for buffer in &replay {
+            assert_eq!(buffer.len(), 9);
+            let mut batch = Batch::default();
+            buffer.sample(400, &mut ChaCha8Rng::seed_from_u64(3), &mut batch);
+            let mut seen: Vec<f32> = batch.continues.clone();
+            seen.sort_by(f32::total_cmp);
+            seen.dedup();
+            assert_eq!(
+                seen,
+                vec![0.25, 1.0],
+                "gamma^(3-1) for a full hold, gamma^0 for the cut one"
+            );
+        }
+        // The run is refused with a centralised critic, or with no decision at all.
+        config.ddpg.centralised_critic = true;
+        assert!(config.validate().is_err());
+        config.ddpg.centralised_critic = false;
+        config.training.action_repeat = 0;
+        assert!(config.validate().is_err());
     }
 
     #[test]
