@@ -1515,6 +1515,23 @@ mod tests {
                 full_at_progress: 0.3,
             };
         });
+        // The thirty-fourth differs from the thirty-second only in holding each action three steps.
+        let thirty_fourth =
+            TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch34.toml"))
+                .expect("the thirty-fourth config parses");
+        assert_eq!(thirty_fourth.training.action_repeat, 3);
+        assert_eq!(thirty_second.training.action_repeat, 1);
+        assert_is_with_undone(&thirty_fourth, &thirty_second, |same| {
+            same.training.action_repeat = 1;
+        });
+        assert_each_edit_is_refused(
+            include_str!("../configs/mtddpg-scratch34.toml"),
+            &[(
+                "action_repeat = 3",
+                "action_repeat = 0",
+                "training.action_repeat",
+            )],
+        );
         assert_each_edit_is_refused(
             include_str!("../configs/mtddpg-scratch32.toml"),
             &[
