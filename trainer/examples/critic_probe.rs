@@ -26,10 +26,9 @@ use skyherd_sim::obs::EncoderBuffers;
 use skyherd_sim::policy::act_all;
 use skyherd_sim::task::parse_task;
 use skyherd_sim::{Env, Policy};
-use skyherd_trainer::checkpoint;
 use skyherd_trainer::ddpg::ACTION_DIM;
-use skyherd_trainer::reward::LearnerReward;
-use skyherd_trainer::rollout::{Draw, training_scenario};
+use skyherd_trainer::rollout::Draw;
+use skyherd_trainer::{audit, checkpoint};
 
 /// A labelled subset of the samples.
 type Group = (&'static str, fn(&Sample) -> bool);
@@ -78,14 +77,7 @@ fn main() -> anyhow::Result<()> {
     let mut features = [0.0_f32; FEATURES];
     for k in 0..episodes {
         let seed = seed_base + k;
-        let scenario = training_scenario(
-            draw,
-            config.training.episode_step_limit,
-            true,
-            &config.reward,
-            gamma,
-        );
-        let mut reward = LearnerReward::new(&config.reward, gamma, &scenario);
+        let (scenario, mut reward) = audit::audited_setup(config, draw);
         let mut env = Env::new(scenario)?;
         env.reset(seed);
         let mut lama = RulePolicy::new(Method::Lama);

@@ -33,7 +33,7 @@ use rayon::prelude::*;
 use skyherd_sim::baseline::{Method, RulePolicy};
 use skyherd_sim::learned::ModelPolicy;
 use skyherd_sim::policy::act_all;
-use skyherd_sim::{Env, Policy, PolicyFactory, ScenarioError, World};
+use skyherd_sim::{Env, Policy, PolicyFactory, Scenario, ScenarioError, World};
 
 use crate::config::TrainConfig;
 use crate::reward::LearnerReward;
@@ -110,8 +110,9 @@ pub struct AuditRow {
     pub return_std: f64,
 }
 
-/// One episode: success, steps, discounted learner return of herder 0.
-fn episode(config: &TrainConfig, draw: Draw, candidate: &Candidate, seed: u64) -> (bool, u64, f64) {
+/// `draw` as the audit flies it under `config` (test noise on, the run's step limit) and the
+/// learner's reward for it at the run's gamma.
+pub fn audited_setup(config: &TrainConfig, draw: Draw) -> (Scenario, LearnerReward) {
     let gamma = f64::from(config.ddpg.gamma);
     let scenario = training_scenario(
         draw,
@@ -120,7 +121,14 @@ fn episode(config: &TrainConfig, draw: Draw, candidate: &Candidate, seed: u64) -
         &config.reward,
         gamma,
     );
-    let mut reward = LearnerReward::new(&config.reward, gamma, &scenario);
+    let reward = LearnerReward::new(&config.reward, gamma, &scenario);
+    (scenario, reward)
+}
+
+/// One episode: success, steps, discounted learner return of herder 0.
+fn episode(config: &TrainConfig, draw: Draw, candidate: &Candidate, seed: u64) -> (bool, u64, f64) {
+    let gamma = f64::from(config.ddpg.gamma);
+    let (scenario, mut reward) = audited_setup(config, draw);
     let mut env = Env::new(scenario).expect("audit validated every scenario");
     let mut policy = candidate.policy();
     env.reset(seed);
