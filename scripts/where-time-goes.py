@@ -31,10 +31,17 @@ SCENARIO = {"collecting": "paper-collect", "driving": "paper-drive"}
 
 def fly(sim, scenario, policy, seed, targets, herders, trace):
     """One episode: the summary `skyherd-sim run` prints, its trace written to `trace`."""
-    out = subprocess.run(
-        [sim, "run", "--scenario", scenario, "--policy", policy, "--seed", str(seed),
-         "--targets", str(targets), "--herders", str(herders), "--out", trace],
-        check=True, capture_output=True, text=True)
+    try:
+        out = subprocess.run(
+            [sim, "run", "--scenario", scenario, "--policy", policy, "--seed", str(seed),
+             "--targets", str(targets), "--herders", str(herders), "--out", trace],
+            capture_output=True, text=True)
+    except OSError as e:
+        sys.exit(f"cannot run {sim}: {e} (build it with `cargo build --release -p skyherd-sim`)")
+    if out.returncode != 0:
+        # The first line is the error; a backtrace may follow when RUST_BACKTRACE is set.
+        first = (out.stderr.strip().splitlines() or ["no message"])[0]
+        sys.exit(f"{sim} run --policy {policy} --seed {seed} failed: {first}")
     return json.loads(out.stdout)
 
 
