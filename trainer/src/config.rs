@@ -716,6 +716,7 @@ pub struct LoopConfig {
     /// one-second step moves a herder at most 5 m, so one action changes the return little
     /// and the critic's action gradient is small beside its errors; holding it longer makes
     /// each decision count for more. Evaluation and flight still ask the actor every step.
+    /// With `flight_rules`, the onboard rules check the velocity when it is decided.
     /// 1: off (every step a decision).
     pub action_repeat: usize,
 }

@@ -581,14 +581,14 @@ impl Rollouts {
             let mut decided: &[[f32; ACTION_DIM]] = slot_actions;
             let mut gathered: &[f32] = &herder_rewards;
             let mut sim_steps = 1;
-            let finished_hold;
+            let finished_hold: Held;
             if repeat > 1 {
-                let gamma = self.gamma as f32;
-                let held = slot.held.get_or_insert_with(|| Held {
+                // A new decision keeps what it was taken on until its last step.
+                let mut held = slot.held.take().unwrap_or_else(|| Held {
                     velocities: velocities.clone(),
                     actions: slot_actions.clone(),
-                    features: before.clone(),
-                    frames: before_frames.clone(),
+                    features: std::mem::take(&mut before),
+                    frames: std::mem::take(&mut before_frames),
                     rewards: vec![0.0; herder_rewards.len()],
                     discount: 1.0,
                     sim_steps: 0,
@@ -596,19 +596,18 @@ impl Rollouts {
                 for (sum, r) in held.rewards.iter_mut().zip(&herder_rewards) {
                     *sum += held.discount * r;
                 }
-                held.discount *= gamma;
+                held.discount *= self.gamma as f32;
                 held.sim_steps += 1;
                 if held.sim_steps < repeat && !ended {
+                    slot.held = Some(held);
                     continue;
                 }
-                finished_hold = slot.held.take();
-                if let Some(h) = &finished_hold {
-                    before = h.features.clone();
-                    before_frames = h.frames.clone();
-                    decided = &h.actions;
-                    gathered = &h.rewards;
-                    sim_steps = h.sim_steps;
-                }
+                before = std::mem::take(&mut held.features);
+                before_frames = std::mem::take(&mut held.frames);
+                sim_steps = held.sim_steps;
+                finished_hold = held;
+                decided = &finished_hold.actions;
+                gathered = &finished_hold.rewards;
             }
             let task = slot.draw.task.index();
             for h in 0..before.len() {
