@@ -940,6 +940,12 @@ impl TrainConfig {
                 "and exploration_noise_decay_to must be fractions of the run with from <= to",
             );
         }
+        if !(d.self_imitation.is_finite() && d.self_imitation >= 0.0) {
+            return bad(
+                "ddpg.self_imitation",
+                "must be a finite number >= 0 (0: off)",
+            );
+        }
         if !(0.0..=1.0).contains(&d.twin_min_weight) {
             return bad(
                 "ddpg.twin_min_weight",
@@ -1525,6 +1531,23 @@ mod tests {
         assert_is_with_undone(&thirty_fourth, &thirty_second, |same| {
             same.training.action_repeat = 1;
         });
+        // The thirty-fifth differs from the thirty-third only in self-imitation.
+        let thirty_fifth =
+            TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch35.toml"))
+                .expect("the thirty-fifth config parses");
+        assert_eq!(thirty_fifth.ddpg.self_imitation, 1.0);
+        assert_eq!(thirty_third.ddpg.self_imitation, 0.0);
+        assert_is_with_undone(&thirty_fifth, &thirty_third, |same| {
+            same.ddpg.self_imitation = 0.0;
+        });
+        assert_each_edit_is_refused(
+            include_str!("../configs/mtddpg-scratch35.toml"),
+            &[(
+                "self_imitation = 1.0",
+                "self_imitation = -1.0",
+                "ddpg.self_imitation",
+            )],
+        );
         assert_each_edit_is_refused(
             include_str!("../configs/mtddpg-scratch34.toml"),
             &[(

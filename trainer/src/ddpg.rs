@@ -108,6 +108,15 @@ pub struct DdpgConfig {
     pub centralised_critic: bool,
     /// The centralised critic pools at most this many other herders (the nearest).
     pub critic_max_others: usize,
+    /// Self-imitation (Oh et al. 2018, for a deterministic actor): the actor also minimises
+    /// `weight * mean over the batch of [R > Q(s, mu(s))] |mu(s) - a|^2`, where `a` is the
+    /// action the herder took and `R` the discounted return it went on to collect to the end of
+    /// its episode (`reward_scale` applied, as Q has it). It pulls the actor towards its own
+    /// past actions that did better than the critic expects of the actor now, which the
+    /// critic's gradient alone may not resolve. Only transitions of episodes that ended
+    /// (success or a target leaving) have a return; truncated ones never pull. 0 (the
+    /// default): off, and the update is plain TD3.
+    pub self_imitation: f32,
 }
 
 /// How exploration noise is drawn.
@@ -145,6 +154,7 @@ impl Default for DdpgConfig {
             planar: false,
             centralised_critic: false,
             critic_max_others: 7,
+            self_imitation: 0.0,
         }
     }
 }
@@ -180,6 +190,9 @@ pub struct UpdateStats {
     pub actor_loss: f32,
     /// Mean `Q(s, a)` on the batch.
     pub q_mean: f32,
+    /// With self-imitation, the share of the actor step's rows whose return beat
+    /// `Q(s, mu(s))` (the rows that pulled); 0 otherwise.
+    pub self_imitation_share: f32,
 }
 
 /// Actor, critic, their targets and optimisers.
@@ -240,6 +253,52 @@ impl TwinCritic {
 const NOISE_SEED: u64 = 0x7D3_5EED;
 
 /// Row-wise `[obs | action]`.
+/// What [`self_imitation_pull`] needs besides the rows.
+#[derive(Clone, Copy, Debug)]
+pub struct SelfImitation {
+    /// [`DdpgConfig::self_imitation`].
+    pub weight: f32,
+    /// [`DdpgConfig::reward_scale`]: returns are stored in reward units, Q in scaled ones.
+    pub reward_scale: f32,
+    /// The vertical component is left alone (the planar pull owns it).
+    pub planar: bool,
+    /// Rows of the whole actor step (the mean's denominator).
+    pub rows: usize,
+}
+
+/// Adds the self-imitation gradient to `d_action` (one row of [`ACTION_DIM`] per transition):
+/// `weight * 2 (mu(s) - a) / rows` on every row whose stored return `R` (reward units, NaN
+/// where unknown) beats the actor's value there, `reward_scale R > Q(s, mu(s))`. Returns how
+/// many rows pulled.
+pub fn self_imitation_pull(
+    sil: &SelfImitation,
+    q_of_actor: &[f32],
+    returns: &[f32],
+    actor_actions: &[f32],
+    taken_actions: &[f32],
+    d_action: &mut [f32],
+) -> usize {
+    let dims = if sil.planar { 2 } else { ACTION_DIM };
+    let scale = sil.weight * 2.0 / sil.rows.max(1) as f32;
+    let mut pulled = 0;
+    for (r, (&q, &ret)) in q_of_actor.iter().zip(returns).enumerate() {
+        // NaN: no return known, nothing to imitate.
+        if ret.is_nan() || sil.reward_scale * ret <= q {
+            continue;
+        }
+        pulled += 1;
+        let row = r * ACTION_DIM..r * ACTION_DIM + dims;
+        for ((d, mu), a) in d_action[row.clone()]
+            .iter_mut()
+            .zip(&actor_actions[row.clone()])
+            .zip(&taken_actions[row])
+        {
+            *d += scale * (mu - a);
+        }
+    }
+    pulled
+}
+
 #[cfg(test)]
 fn concat_rows(obs: &[f32], obs_dim: usize, actions: &[f32], rows: usize) -> Vec<f32> {
     critic_rows(obs, obs_dim, actions, &[], 0, rows)
@@ -470,7 +529,8 @@ impl Agent {
             .updates
             .is_multiple_of(u64::from(c.policy_frequency.max(1)))
         {
-            stats.actor_loss = self.actor_step(batches, demos, imitation_weight);
+            (stats.actor_loss, stats.self_imitation_share) =
+                self.actor_step(batches, demos, imitation_weight);
             self.target_actor.soft_update_from(&self.actor, c.tau);
             self.target_critic.soft_update_from(&self.critic, c.tau);
             if let Some(twin) = self.twin.as_mut() {
@@ -587,8 +647,14 @@ impl Agent {
         stats
     }
 
-    /// Gradient ascent on `mean Q(s, mu(s))` (plus the imitation pull); returns `-mean Q`.
-    fn actor_step(&mut self, batches: &[Batch], demos: &[Batch], imitation_weight: f32) -> f32 {
+    /// Gradient ascent on `mean Q(s, mu(s))` (plus the imitation pull and the self-imitation
+    /// pull); returns `-mean Q` and the share of rows that self-imitated.
+    fn actor_step(
+        &mut self,
+        batches: &[Batch],
+        demos: &[Batch],
+        imitation_weight: f32,
+    ) -> (f32, f32) {
         let obs_dim = self.obs_dim();
         let total: usize = batches.iter().map(|b| b.size).sum();
         let mut actor_grads = self.actor.zeros_like();
@@ -620,7 +686,8 @@ impl Agent {
         } else {
             1.0
         };
-        for (_, a_tape, q_tape) in &q_tapes {
+        let mut sil_rows = 0;
+        for (task, a_tape, q_tape) in &q_tapes {
             let d_q = vec![-q_scale / total as f32; q_tape.batch];
             let d_input = self
                 .critic
@@ -641,6 +708,22 @@ impl Agent {
                     d[2] = 2.0 * a[2] / total as f32;
                 }
             }
+            let b = &batches[*task];
+            if self.config.self_imitation > 0.0 && b.returns.len() == b.size {
+                sil_rows += self_imitation_pull(
+                    &SelfImitation {
+                        weight: self.config.self_imitation,
+                        reward_scale: self.config.reward_scale,
+                        planar: self.config.planar,
+                        rows: total,
+                    },
+                    q_tape.output(),
+                    &b.returns,
+                    a_tape.output(),
+                    &b.actions,
+                    &mut d_action,
+                );
+            }
             self.actor
                 .backward(a_tape, &d_action, Some(&mut actor_grads), false);
         }
@@ -660,7 +743,7 @@ impl Agent {
         }
         self.actor_optimizer
             .update(self.actor.layers_mut(), actor_grads.layers());
-        loss
+        (loss, sil_rows as f32 / total.max(1) as f32)
     }
 
     /// Behaviour cloning step: minimise the mean of `|mu(s) - a*|^2` over one batch per task of
@@ -888,6 +971,110 @@ mod tests {
             last = agent.imitation_step(&batches);
         }
         assert!(last < 2e-3, "imitation loss {last}");
+    }
+
+    #[test]
+    fn self_imitation_pulls_only_rows_whose_return_beats_the_actor_value() {
+        let sil = SelfImitation {
+            weight: 0.5,
+            reward_scale: 0.1,
+            planar: true,
+            rows: 4,
+        };
+        // Q(s, mu(s)) is -1 on every row; the returns, scaled, are -0.5 (better), -2 (worse),
+        // unknown, and -1 exactly (not better).
+        let q = [-1.0; 4];
+        let returns = [-5.0, -20.0, f32::NAN, -10.0];
+        let mu = [0.2, 0.2, 0.9, 0.2, 0.2, 0.9, 0.2, 0.2, 0.9, 0.2, 0.2, 0.9];
+        let taken = [
+            0.6, -0.2, 0.0, 0.6, -0.2, 0.0, 0.6, -0.2, 0.0, 0.6, -0.2, 0.0,
+        ];
+        let mut d = [0.0; 12];
+        let pulled = self_imitation_pull(&sil, &q, &returns, &mu, &taken, &mut d);
+        assert_eq!(pulled, 1);
+        // weight 2 (mu - a) / rows on the first row's planar components only.
+        let expected = [
+            0.5 * 2.0 * (0.2 - 0.6) / 4.0,
+            0.5 * 2.0 * (0.2 + 0.2) / 4.0,
+            0.0,
+        ];
+        for (got, want) in d[..3].iter().zip(expected) {
+            assert!((got - want).abs() < 1e-6, "{got} vs {want}");
+        }
+        assert!(d[3..].iter().all(|&x| x == 0.0));
+        // Off the plane the vertical component is pulled too.
+        let mut d = [0.0; 12];
+        self_imitation_pull(
+            &SelfImitation {
+                planar: false,
+                ..sil
+            },
+            &q,
+            &returns,
+            &mu,
+            &taken,
+            &mut d,
+        );
+        assert!((d[2] - 0.5 * 2.0 * 0.9 / 4.0).abs() < 1e-6);
+    }
+
+    #[test]
+    fn self_imitation_moves_the_actor_towards_actions_that_beat_its_value() {
+        let network = NetworkConfig {
+            hidden: 16,
+            shared_layers: 1,
+        };
+        let taken = [0.8_f32, -0.6, 0.0];
+        let mut rng = ChaCha8Rng::seed_from_u64(21);
+        let mut batch = batch_of(4, 32, &mut rng);
+        batch.actions = taken.repeat(32);
+        // Returns far above anything the critic values: every row beats the actor.
+        batch.returns = vec![1e4; 32];
+        let gap = |agent: &Agent, obs: &[f32]| {
+            let a = agent.act(0, obs);
+            (a[0] - taken[0]).abs() + (a[1] - taken[1]).abs()
+        };
+        let obs = batch.obs[..4].to_vec();
+        let mut off = Agent::new(
+            4,
+            2,
+            network,
+            DdpgConfig {
+                planar: true,
+                ..DdpgConfig::default()
+            },
+            &mut ChaCha8Rng::seed_from_u64(5),
+        );
+        let mut on = Agent::new(
+            4,
+            2,
+            network,
+            DdpgConfig {
+                planar: true,
+                self_imitation: 5.0,
+                actor_learning_rate: 1e-3,
+                ..DdpgConfig::default()
+            },
+            &mut ChaCha8Rng::seed_from_u64(5),
+        );
+        let before = gap(&on, &obs);
+        let mut share = 0.0;
+        for _ in 0..300 {
+            share = on
+                .update(&[batch.clone(), Batch::default()])
+                .self_imitation_share
+                .max(share);
+            off.update(&[batch.clone(), Batch::default()]);
+        }
+        assert_eq!(share, 1.0, "every row pulled");
+        let after = gap(&on, &obs);
+        assert!(after < 0.25 * before, "gap {before} -> {after}");
+        // Off, the returns are ignored.
+        assert_eq!(
+            off.update(&[batch.clone(), Batch::default()])
+                .self_imitation_share,
+            0.0
+        );
     }
 
     fn batch_of(obs_dim: usize, rows: usize, rng: &mut ChaCha8Rng) -> Batch {

@@ -33,6 +33,13 @@ pub struct ReplayBuffer {
     /// `gamma^(k-1) (1 - terminated)` of a `k`-step transition: what multiplies
     /// `gamma Q'(s')` in its TD target.
     continues: Vec<f32>,
+    /// The discounted return from `s` to its episode's end, in reward units, once the episode
+    /// has ended ([`ReplayBuffer::set_return`]); NaN until then and for truncated episodes.
+    returns: Vec<f32>,
+    /// Transitions pushed since the buffer was made (never reset): a push's stamp.
+    pushed: u64,
+    /// `pushed` at the last [`ReplayBuffer::clear`]: older stamps are gone.
+    stamp_base: u64,
     /// The centralised critic's columns, when kept.
     others: Option<OthersColumns>,
 }
@@ -101,6 +108,9 @@ pub struct Batch {
     /// `1 - terminated` for one-step transitions; `gamma^(k-1) (1 - terminated)` for `k`-step
     /// ones: the TD target is `r + gamma continues Q'(next_obs)`.
     pub continues: Vec<f32>,
+    /// `[size]`: the discounted return from `obs` to the episode's end in reward units, NaN
+    /// where not known (self-imitation's; empty in hand-made batches).
+    pub returns: Vec<f32>,
     /// Centralised critic only (else empty): `[size][obs_dim + action_dim]`, the other herders
     /// pooled at `s`.
     pub context: Vec<f32>,
@@ -127,6 +137,9 @@ impl ReplayBuffer {
             rewards: vec![0.0; capacity],
             next_obs: vec![0.0; capacity * obs_dim],
             continues: vec![1.0; capacity],
+            returns: vec![f32::NAN; capacity],
+            pushed: 0,
+            stamp_base: 0,
             others: None,
         }
     }
@@ -155,6 +168,21 @@ impl ReplayBuffer {
     pub fn clear(&mut self) {
         self.len = 0;
         self.next = 0;
+        self.stamp_base = self.pushed;
+    }
+
+    /// Sets the return-to-go (reward units) of the transition whose push returned `stamp`;
+    /// false, and nothing set, when that transition is gone (overwritten or cleared).
+    pub fn set_return(&mut self, stamp: u64, value: f32) -> bool {
+        if stamp < self.stamp_base || stamp >= self.pushed {
+            return false;
+        }
+        if self.pushed - stamp > self.capacity as u64 {
+            return false;
+        }
+        let i = ((stamp - self.stamp_base) % self.capacity as u64) as usize;
+        self.returns[i] = value;
+        true
     }
 
     /// Stored transitions.
@@ -172,7 +200,8 @@ impl ReplayBuffer {
         self.obs_dim
     }
 
-    /// Adds a one-step transition, overwriting the oldest when full.
+    /// Adds a one-step transition, overwriting the oldest when full; returns its stamp (for
+    /// [`ReplayBuffer::set_return`]).
     pub fn push(
         &mut self,
         obs: &[f32],
@@ -180,13 +209,13 @@ impl ReplayBuffer {
         reward: f32,
         next_obs: &[f32],
         terminated: bool,
-    ) {
+    ) -> u64 {
         let continues = if terminated { 0.0 } else { 1.0 };
-        self.push_discounted(obs, action, reward, next_obs, continues);
+        self.push_discounted(obs, action, reward, next_obs, continues)
     }
 
     /// Adds a transition whose TD target is `reward + gamma continues Q'(next_obs)` (an
-    /// n-step transition: see [`NStep`]).
+    /// n-step transition: see [`NStep`]); returns its stamp (for [`ReplayBuffer::set_return`]).
     pub fn push_discounted(
         &mut self,
         obs: &[f32],
@@ -194,7 +223,7 @@ impl ReplayBuffer {
         reward: f32,
         next_obs: &[f32],
         continues: f32,
-    ) {
+    ) -> u64 {
         assert_eq!(obs.len(), self.obs_dim, "observation width");
         assert_eq!(next_obs.len(), self.obs_dim, "next observation width");
         assert_eq!(action.len(), self.action_dim, "action width");
@@ -205,6 +234,7 @@ impl ReplayBuffer {
         self.actions[i * a..(i + 1) * a].copy_from_slice(action);
         self.rewards[i] = reward;
         self.continues[i] = continues;
+        self.returns[i] = f32::NAN;
         if let Some(cols) = self.others.as_mut() {
             // A transition without others (a lone herder) has an empty pool.
             let w = o + a;
@@ -213,6 +243,9 @@ impl ReplayBuffer {
         }
         self.next = (self.next + 1) % self.capacity;
         self.len = (self.len + 1).min(self.capacity);
+        let stamp = self.pushed;
+        self.pushed += 1;
+        stamp
     }
 
     /// Adds a transition with its other herders (a buffer made [`ReplayBuffer::with_others`];
@@ -226,12 +259,12 @@ impl ReplayBuffer {
         next_obs: &[f32],
         continues: f32,
         others: Others<'_>,
-    ) {
+    ) -> u64 {
         let i = self.next;
-        self.push_discounted(obs, action, reward, next_obs, continues);
+        let stamp = self.push_discounted(obs, action, reward, next_obs, continues);
         let (o, a) = (self.obs_dim, self.action_dim);
         let Some(cols) = self.others.as_mut() else {
-            return;
+            return stamp;
         };
         let w = o + a;
         assert_eq!(others.context.len(), w, "pooled context width");
@@ -242,6 +275,19 @@ impl ReplayBuffer {
         dst[..k * o].copy_from_slice(&others.next_obs[..k * o]);
         dst[k * o..].fill(0.0);
         cols.next_count[i] = k as u8;
+        stamp
+    }
+
+    /// The stored return-to-go of the `i`-th row in storage order (NaN where unknown).
+    #[cfg(test)]
+    pub(crate) fn return_at(&self, i: usize) -> f32 {
+        self.returns[i]
+    }
+
+    /// The stored reward and `continues` of the `i`-th row in storage order.
+    #[cfg(test)]
+    pub(crate) fn reward_at(&self, i: usize) -> (f32, f32) {
+        (self.rewards[i], self.continues[i])
     }
 
     /// Draws `size` transitions uniformly with replacement into `batch` (empty if the buffer is).
@@ -252,6 +298,7 @@ impl ReplayBuffer {
         batch.rewards.clear();
         batch.next_obs.clear();
         batch.continues.clear();
+        batch.returns.clear();
         batch.context.clear();
         batch.next_others.clear();
         batch.next_others_count.clear();
@@ -268,6 +315,7 @@ impl ReplayBuffer {
                 .next_obs
                 .extend_from_slice(&self.next_obs[i * o..(i + 1) * o]);
             batch.continues.push(self.continues[i]);
+            batch.returns.push(self.returns[i]);
             if let Some(cols) = &self.others {
                 let w = o + a;
                 batch
@@ -281,6 +329,19 @@ impl ReplayBuffer {
             }
         }
     }
+}
+
+/// The discounted return-to-go of every step of an ended episode: `R_k = r_k + gamma^(s_k)
+/// R_(k+1)` with `R` past the last step 0, where each step is `(reward, simulator steps it
+/// spans)` (a held action's reward is already its steps' discounted sum, see [`OneStep`]).
+pub fn returns_to_go(steps: &[(f32, usize)], gamma: f32) -> Vec<f32> {
+    let mut out = vec![0.0; steps.len()];
+    let mut after = 0.0_f32;
+    for (k, &(reward, sim_steps)) in steps.iter().enumerate().rev() {
+        after = reward + gamma.powi(sim_steps.max(1) as i32) * after;
+        out[k] = after;
+    }
+    out
 }
 
 /// One herder's n-step return accumulator: push each one-step transition, get back the
@@ -644,5 +705,46 @@ mod tests {
         lone.sample(1, &mut rng, &mut batch);
         assert_eq!(batch.next_others_count, vec![0]);
         assert_eq!(batch.context, vec![0.0; 3]);
+    }
+
+    #[test]
+    fn returns_to_go_discount_over_simulator_steps() {
+        let gamma = 0.5;
+        // Three steps, the middle one an action held over two simulator steps.
+        let r = returns_to_go(&[(1.0, 1), (2.0, 2), (4.0, 1)], gamma);
+        assert_eq!(
+            r,
+            vec![1.0 + 0.5 * (2.0 + 0.25 * 4.0), 2.0 + 0.25 * 4.0, 4.0]
+        );
+        assert!(returns_to_go(&[], gamma).is_empty());
+    }
+
+    #[test]
+    fn a_return_is_set_by_stamp_and_refused_once_its_row_is_gone() {
+        let mut b = ReplayBuffer::new(1, 1, 2);
+        let first = b.push(&[0.0], &[0.0], 0.0, &[0.0], false);
+        let second = b.push(&[1.0], &[0.0], 0.0, &[1.0], false);
+        assert_eq!(second, first + 1);
+        assert!(b.return_at(0).is_nan(), "unknown until set");
+        assert!(b.set_return(second, 7.0));
+        assert_eq!(b.return_at(1), 7.0);
+        // A third push overwrites the first row: its stamp no longer reaches anything, and the
+        // new row starts unknown.
+        let third = b.push(&[2.0], &[0.0], 0.0, &[2.0], false);
+        assert!(!b.set_return(first, 1.0));
+        assert!(b.return_at(0).is_nan());
+        assert!(b.set_return(third, 3.0));
+        assert_eq!(b.return_at(0), 3.0);
+        assert!(!b.set_return(third + 1, 1.0), "not pushed yet");
+        // A cleared buffer forgets every earlier stamp, and stamps keep counting.
+        b.clear();
+        assert!(!b.set_return(third, 1.0));
+        let fourth = b.push(&[3.0], &[0.0], 0.0, &[3.0], true);
+        assert_eq!(fourth, third + 1);
+        assert!(b.set_return(fourth, -2.0));
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        let mut batch = Batch::default();
+        b.sample(4, &mut rng, &mut batch);
+        assert_eq!(batch.returns, vec![-2.0; 4]);
     }
 }

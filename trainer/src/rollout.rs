@@ -245,6 +245,37 @@ struct HerderState {
     waypoint: Option<([f64; 2], u64)>,
     /// An exploration excursion under way: its waypoint and the step it ends at.
     excursion: Option<([f64; 2], u64)>,
+    /// Self-imitation only: this episode's transitions so far, for their returns at its end.
+    episode: EpisodeLog,
+}
+
+/// One herder's transitions of the running episode, kept (with self-imitation) so that their
+/// returns can be written into the replay when the episode ends: `steps[k]` is the k-th step
+/// pushed (its reward and simulator steps) and `stamps[k]` the replay stamp of the
+/// transition that starts there, once pushed (n-step transitions come out in the order they
+/// start).
+#[derive(Clone, Debug, Default)]
+struct EpisodeLog {
+    steps: Vec<(f32, usize)>,
+    stamps: Vec<u64>,
+}
+
+impl EpisodeLog {
+    /// A broken chain (an observation the encoder refused): the steps kept so far are missing
+    /// a reward, so none of them gets a return.
+    fn clear(&mut self) {
+        self.steps.clear();
+        self.stamps.clear();
+    }
+
+    /// At the episode's end: each pushed transition's return-to-go into `replay`.
+    fn write_returns(&mut self, replay: &mut ReplayBuffer, gamma: f32) {
+        let returns = crate::replay::returns_to_go(&self.steps, gamma);
+        for (&stamp, &ret) in self.stamps.iter().zip(&returns) {
+            replay.set_return(stamp, ret);
+        }
+        self.clear();
+    }
 }
 
 /// Exploration excursions ([`LoopConfig::excursion_rate`](crate::config::LoopConfig)): while
@@ -507,6 +538,7 @@ impl Rollouts {
             ou: [0.0; ACTION_DIM],
             waypoint: None,
             excursion: None,
+            episode: EpisodeLog::default(),
         };
         let mut slot = Slot {
             herders: vec![herder; env.world().herders.len()],
@@ -610,11 +642,13 @@ impl Rollouts {
                 gathered = &finished_hold.rewards;
             }
             let task = slot.draw.task.index();
+            let logs_returns = self.ddpg.self_imitation > 0.0;
             for h in 0..before.len() {
                 if before_frames[h].is_none() || slot.frames[h].is_none() {
                     // An observation the encoder refused carries no transition (and breaks
                     // an n-step chain).
                     slot.herders[h].nstep.clear();
+                    slot.herders[h].episode.clear();
                     continue;
                 }
                 // A buffer as wide as an older encoder's features keeps that prefix.
@@ -640,9 +674,12 @@ impl Rollouts {
                     context: &context,
                     next_obs: &next_others,
                 };
+                if logs_returns {
+                    slot.herders[h].episode.steps.push((r, sim_steps));
+                }
                 if self.ddpg.n_step <= 1 && repeat == 1 {
                     let continues = if out.terminated { 0.0 } else { 1.0 };
-                    if centralised {
+                    let stamp = if centralised {
                         replay[task].push_with_others(
                             &before[h][..w],
                             &decided[h],
@@ -650,7 +687,7 @@ impl Rollouts {
                             &slot.features[h][..w],
                             continues,
                             others,
-                        );
+                        )
                     } else {
                         replay[task].push(
                             &before[h][..w],
@@ -658,7 +695,10 @@ impl Rollouts {
                             r,
                             &slot.features[h][..w],
                             out.terminated,
-                        );
+                        )
+                    };
+                    if logs_returns {
+                        slot.herders[h].episode.stamps.push(stamp);
                     }
                 } else {
                     emitted.clear();
@@ -674,7 +714,7 @@ impl Rollouts {
                     };
                     slot.herders[h].nstep.push(step, &mut emitted);
                     for t in &emitted {
-                        if centralised {
+                        let stamp = if centralised {
                             let others = Others {
                                 context: &t.context,
                                 next_obs: &next_others,
@@ -686,7 +726,7 @@ impl Rollouts {
                                 &t.next_obs,
                                 t.continues,
                                 others,
-                            );
+                            )
                         } else {
                             replay[task].push_discounted(
                                 &t.obs,
@@ -694,9 +734,18 @@ impl Rollouts {
                                 t.reward,
                                 &t.next_obs,
                                 t.continues,
-                            );
+                            )
+                        };
+                        if logs_returns {
+                            slot.herders[h].episode.stamps.push(stamp);
                         }
                     }
+                }
+                if logs_returns && out.terminated {
+                    // Only an episode that ended has returns; a truncated one's stay unknown.
+                    slot.herders[h]
+                        .episode
+                        .write_returns(&mut replay[task], self.gamma as f32);
                 }
                 if let Some(d) = demos.as_deref_mut() {
                     let w = d[task].obs_dim();
@@ -1627,5 +1676,74 @@ mod tests {
             )
             .expect("step");
         assert_eq!(demos[0].len(), 3);
+    }
+
+    #[test]
+    fn with_self_imitation_an_ended_episode_writes_each_transition_its_return() {
+        let mut config = TrainConfig::default();
+        config.ddpg.self_imitation = 0.5;
+        config.ddpg.n_step = 5;
+        // Undiscounted, herder 0's first return is the episode's learner return.
+        config.ddpg.gamma = 1.0;
+        config.training.episode_step_limit = 600;
+        let rule = WarmStartConfig {
+            driving_baseline: Method::FarthestTargets,
+            collecting_baseline: Method::FarthestTargets,
+            ..WarmStartConfig::default()
+        };
+        let run = |config: &TrainConfig| {
+            let mut draw = |_: &mut ChaCha8Rng, _| Draw::paper(Task::Collecting, 4, 3);
+            let mut rollouts =
+                Rollouts::new(1, config, ChaCha8Rng::seed_from_u64(4), &mut draw).expect("envs");
+            let mut replay: Vec<ReplayBuffer> = (0..2)
+                .map(|_| ReplayBuffer::new(FEATURES, 3, 10_000))
+                .collect();
+            let task = Task::Collecting.index();
+            for _ in 0..600 {
+                let ended = rollouts
+                    .step(&Controller::Baseline(&rule), &mut replay, None, &mut draw)
+                    .expect("step");
+                if let Some(e) = ended.first() {
+                    let rows = replay[task].len();
+                    return (*e, rows, replay.swap_remove(task));
+                }
+            }
+            panic!("the rule did not end a collecting episode in 600 steps");
+        };
+        let (episode, rows, replay) = run(&config);
+        assert!(episode.success, "the rule collects N = 4");
+        assert_eq!(
+            rows,
+            3 * episode.steps as usize,
+            "one transition per herder and step"
+        );
+        for i in 0..rows {
+            let ret = replay.return_at(i);
+            assert!(
+                ret.is_finite(),
+                "row {i} of an ended episode has its return"
+            );
+            let (reward, continues) = replay.reward_at(i);
+            if continues == 0.0 {
+                // The last transitions run to the end: their return is their own reward sum.
+                assert!((ret - reward).abs() < 1e-3, "row {i}: {ret} vs {reward}");
+            }
+        }
+        let first = f64::from(replay.return_at(0));
+        assert!(
+            (first - episode.learner_return).abs() < 1e-3 * episode.learner_return.abs().max(1.0),
+            "herder 0's first return {first} vs the episode's {}",
+            episode.learner_return
+        );
+        // Without self-imitation nothing is written.
+        config.ddpg.self_imitation = 0.0;
+        let (_, rows, replay) = run(&config);
+        assert!((0..rows).all(|i| replay.return_at(i).is_nan()));
+        // A truncated episode's returns stay unknown: it has no end to count to.
+        config.ddpg.self_imitation = 0.5;
+        config.training.episode_step_limit = 20;
+        let (episode, rows, replay) = run(&config);
+        assert!(!episode.success && episode.steps == 20);
+        assert!((0..rows).all(|i| replay.return_at(i).is_nan()));
     }
 }
