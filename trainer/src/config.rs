@@ -1548,6 +1548,26 @@ mod tests {
                 "ddpg.self_imitation",
             )],
         );
+        // The thirty-sixth: the thirty-third with self-imitation on the faster episodes.
+        let thirty_sixth =
+            TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch36.toml"))
+                .expect("the thirty-sixth config parses");
+        assert_eq!(
+            thirty_sixth.ddpg.self_imitation_episodes,
+            crate::ddpg::SelfImitationEpisodes::FasterThanMedian
+        );
+        assert_is_with_undone(&thirty_sixth, &thirty_third, |same| {
+            same.ddpg.self_imitation = 0.0;
+            same.ddpg.self_imitation_episodes = crate::ddpg::SelfImitationEpisodes::Ended;
+        });
+        assert!(
+            TrainConfig::from_toml_str(&include_str!("../configs/mtddpg-scratch36.toml").replace(
+                "self_imitation_episodes = \"faster_than_median\"",
+                "self_imitation_episodes = \"fastest\""
+            ))
+            .is_err(),
+            "an unknown episode filter is refused"
+        );
         assert_each_edit_is_refused(
             include_str!("../configs/mtddpg-scratch34.toml"),
             &[(

@@ -117,7 +117,30 @@ pub struct DdpgConfig {
     /// (success or a target leaving) have a return; truncated ones never pull. 0 (the
     /// default): off, and the update is plain TD3.
     pub self_imitation: f32,
+    /// Which ended episodes give their transitions a return for self-imitation.
+    pub self_imitation_episodes: SelfImitationEpisodes,
 }
+
+/// Which ended episodes self-imitation may learn from ([`DdpgConfig::self_imitation_episodes`]).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum SelfImitationEpisodes {
+    /// Every episode that ended (a success, or a target leaving); only the row test
+    /// `R > Q(s, mu(s))` chooses.
+    #[default]
+    Ended,
+    /// Only successes that took fewer steps than the median of the last
+    /// [`FASTER_WINDOW`] successes of the same task, flock size and team size (every success
+    /// while fewer than [`FASTER_MIN`] are known). The row test still applies. Twin critics
+    /// read low, so `R > Q` alone passes most rows of any ended episode; this keeps the pull
+    /// to episodes that beat the actor's recent ones on the measure the aim is about.
+    FasterThanMedian,
+}
+
+/// Successes per scenario kept for [`SelfImitationEpisodes::FasterThanMedian`]'s median.
+pub const FASTER_WINDOW: usize = 32;
+/// Below this many known successes of a scenario, every success counts as faster.
+pub const FASTER_MIN: usize = 8;
 
 /// How exploration noise is drawn.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
@@ -155,6 +178,7 @@ impl Default for DdpgConfig {
             centralised_critic: false,
             critic_max_others: 7,
             self_imitation: 0.0,
+            self_imitation_episodes: SelfImitationEpisodes::Ended,
         }
     }
 }

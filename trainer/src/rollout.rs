@@ -21,7 +21,9 @@ use crate::config::{
     CurriculumStage, LoopConfig, ROOM_LAYOUT_MAX_TARGETS, RewardConfig, TrainConfig,
     WarmStartConfig,
 };
-use crate::ddpg::{ACTION_DIM, DdpgConfig, Exploration};
+use crate::ddpg::{
+    ACTION_DIM, DdpgConfig, Exploration, FASTER_MIN, FASTER_WINDOW, SelfImitationEpisodes,
+};
 use crate::network::{MultiTaskMlp, Tape};
 use crate::replay::{NStep, OneStep, Others, ReplayBuffer, pool_others};
 use crate::reward::LearnerReward;
@@ -249,6 +251,49 @@ struct HerderState {
     episode: EpisodeLog,
 }
 
+/// The steps of the last [`FASTER_WINDOW`] successes per scenario (task, N, M), for
+/// [`SelfImitationEpisodes::FasterThanMedian`].
+#[derive(Clone, Debug, Default)]
+struct RecentSuccesses {
+    steps: std::collections::HashMap<(usize, usize, usize), std::collections::VecDeque<u64>>,
+}
+
+impl RecentSuccesses {
+    /// Whether an episode of `draw` that ended (`success`, in `steps`) may be imitated under
+    /// `which`; records a success for later episodes.
+    fn admits(
+        &mut self,
+        which: SelfImitationEpisodes,
+        draw: Draw,
+        success: bool,
+        steps: u64,
+    ) -> bool {
+        match which {
+            SelfImitationEpisodes::Ended => true,
+            SelfImitationEpisodes::FasterThanMedian => {
+                if !success {
+                    return false;
+                }
+                let key = (draw.task.index(), draw.targets, draw.herders);
+                let window = self.steps.entry(key).or_default();
+                let faster = window.len() < FASTER_MIN || steps < median(window);
+                window.push_back(steps);
+                if window.len() > FASTER_WINDOW {
+                    window.pop_front();
+                }
+                faster
+            }
+        }
+    }
+}
+
+/// The median of a non-empty window (the upper one of an even count).
+fn median(window: &std::collections::VecDeque<u64>) -> u64 {
+    let mut sorted: Vec<u64> = window.iter().copied().collect();
+    sorted.sort_unstable();
+    sorted[sorted.len() / 2]
+}
+
 /// One herder's transitions of the running episode, kept (with self-imitation) so that their
 /// returns can be written into the replay when the episode ends: `steps[k]` is the k-th step
 /// pushed (its reward and simulator steps) and `stamps[k]` the replay stamp of the
@@ -373,6 +418,8 @@ pub struct Rollouts {
     excursions: Excursions,
     /// Simulator steps a decision is held for (`training.action_repeat`).
     action_repeat: usize,
+    /// Recent successes' steps per scenario, for self-imitation's episode filter.
+    recent_successes: RecentSuccesses,
     /// Environment steps taken (summed over slots).
     pub env_steps: u64,
 }
@@ -457,6 +504,7 @@ impl Rollouts {
                 .min_centre_distance_radii,
             excursions: Excursions::from_config(&config.training),
             action_repeat: config.training.action_repeat.max(1),
+            recent_successes: RecentSuccesses::default(),
             env_steps: 0,
         };
         for i in 0..count {
@@ -643,6 +691,14 @@ impl Rollouts {
             }
             let task = slot.draw.task.index();
             let logs_returns = self.ddpg.self_imitation > 0.0;
+            let writes_returns = logs_returns
+                && out.terminated
+                && self.recent_successes.admits(
+                    self.ddpg.self_imitation_episodes,
+                    slot.draw,
+                    out.success,
+                    slot.env.info().steps,
+                );
             for h in 0..before.len() {
                 if before_frames[h].is_none() || slot.frames[h].is_none() {
                     // An observation the encoder refused carries no transition (and breaks
@@ -741,7 +797,7 @@ impl Rollouts {
                         }
                     }
                 }
-                if logs_returns && out.terminated {
+                if writes_returns {
                     // Only an episode that ended has returns; a truncated one's stay unknown.
                     slot.herders[h]
                         .episode
@@ -1745,5 +1801,33 @@ mod tests {
         let (episode, rows, replay) = run(&config);
         assert!(!episode.success && episode.steps == 20);
         assert!((0..rows).all(|i| replay.return_at(i).is_nan()));
+    }
+
+    #[test]
+    fn the_faster_filter_admits_successes_below_the_scenarios_recent_median() {
+        let mut recent = RecentSuccesses::default();
+        let faster = SelfImitationEpisodes::FasterThanMedian;
+        let four = Draw::paper(Task::Collecting, 4, 4);
+        let sixteen = Draw::paper(Task::Collecting, 16, 4);
+        // Until FASTER_MIN successes are known, every success is admitted, no failure ever.
+        assert!(!recent.admits(faster, four, false, 50));
+        for k in 0..FASTER_MIN as u64 {
+            assert!(recent.admits(faster, four, true, 200 + k));
+        }
+        // The window holds 200..=207: its median is 204.
+        assert!(recent.admits(faster, four, true, 203));
+        assert!(!recent.admits(faster, four, true, 204));
+        assert!(!recent.admits(faster, four, false, 10));
+        // Another flock size keeps a window of its own.
+        assert!(recent.admits(faster, sixteen, true, 900));
+        // The window keeps the last FASTER_WINDOW successes: after that many fast ones, the
+        // slow early ones no longer set the median.
+        for _ in 0..FASTER_WINDOW {
+            recent.admits(faster, four, true, 100);
+        }
+        assert!(!recent.admits(faster, four, true, 150));
+        assert!(recent.admits(faster, four, true, 99));
+        // Without the filter, every ended episode is admitted.
+        assert!(recent.admits(SelfImitationEpisodes::Ended, four, false, 600));
     }
 }
