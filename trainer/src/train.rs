@@ -880,6 +880,8 @@ impl Run<'_> {
         let mut update_time = 0.0_f64;
         let mut update_count = 0u64;
         let mut stats = crate::ddpg::UpdateStats::default();
+        // The last actor step's self-imitation share (critic-only updates report none).
+        let mut self_imitation_share = 0.0_f32;
         let mut next_eval = self.agent.updates + config.eval.every_updates;
         let tasks = config.training.tasks.len().max(1) as u64;
         let by_steps = config.eval.every_task_env_steps > 0;
@@ -994,6 +996,9 @@ impl Run<'_> {
                         self.agent
                             .update_with_imitation(&batches, &demo_batches, imitation_weight)
                     };
+                    if let Some(share) = stats.self_imitation_share {
+                        self_imitation_share = share;
+                    }
                     update_time += tick.elapsed().as_secs_f64();
                     update_count += 1;
                 }
@@ -1013,7 +1018,7 @@ impl Run<'_> {
                         n.targets,
                         1e3 * update_time / update_count.max(1) as f64,
                         if config.ddpg.self_imitation > 0.0 {
-                            format!(" sil {:.0}%", 100.0 * stats.self_imitation_share)
+                            format!(" sil {:.0}%", 100.0 * self_imitation_share)
                         } else {
                             String::new()
                         }
