@@ -4,7 +4,10 @@
 //!
 //! Tensor names: `{net}.{part}.{index}.{weight|bias}` with `net` one of `actor`, `critic`,
 //! `target_actor`, `target_critic`, `actor_adam_m`, `actor_adam_v`, `critic_adam_m`,
-//! `critic_adam_v`, and `part` one of `task_inputs`, `shared`, `task_outputs`. Weights are
+//! `critic_adam_v` (with twin critics also `critic2`, `target_critic2`, `critic2_adam_m`,
+//! `critic2_adam_v`; with the advantage-decomposed critic `value`, `target_value`,
+//! `value_adam_m`, `value_adam_v` and with twins the same with `value2`), and `part` one of
+//! `task_inputs`, `shared`, `task_outputs`. Weights are
 //! `[outputs, inputs]` row-major f32, as in `skyherd_model::Dense`.
 //!
 //! The replay buffers are not saved (hundreds of MB); a resumed run refills them.
@@ -17,7 +20,7 @@ use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 use crate::config::TrainConfig;
-use crate::ddpg::{Agent, TwinCritic};
+use crate::ddpg::{Agent, StateValue, TwinCritic};
 use crate::network::MultiTaskMlp;
 use crate::nn::{Activation, Adam, AdamConfig, Dense};
 
@@ -97,6 +100,13 @@ pub struct Checkpoint {
 }
 
 const NETS: [&str; 4] = ["actor", "critic", "target_actor", "target_critic"];
+
+/// The state values of an advantage-decomposed critic: the network, its target, its Adam
+/// moments and the metadata key of its Adam step, for the first and the twin's.
+const VALUE_NETS: [[&str; 5]; 2] = [
+    ["value", "target_value", "value_adam_m", "value_adam_v", "value_adam_step"],
+    ["value2", "target_value2", "value2_adam_m", "value2_adam_v", "value2_adam_step"],
+];
 
 fn layer_groups(net: &MultiTaskMlp) -> [(&'static str, &[Dense]); 3] {
     [
@@ -181,7 +191,16 @@ pub fn to_bytes(checkpoint: &Checkpoint) -> Result<Vec<u8>, CheckpointError> {
             &adam_as_net(&twin.optimizer.second, &twin.critic),
         );
     }
+    for (v, name) in a.values.iter().zip(VALUE_NETS) {
+        push_net(&mut tensors, name[0], &v.value);
+        push_net(&mut tensors, name[1], &v.target);
+        push_net(&mut tensors, name[2], &adam_as_net(&v.optimizer.first, &v.value));
+        push_net(&mut tensors, name[3], &adam_as_net(&v.optimizer.second, &v.value));
+    }
     let mut meta = net_meta("skyherd-trainer-checkpoint-v1", &a.actor);
+    for (v, name) in a.values.iter().zip(VALUE_NETS) {
+        meta.insert(name[4].into(), v.optimizer.step.to_string());
+    }
     if let Some(twin) = &a.twin {
         meta.insert("critic2_adam_step".into(), twin.optimizer.step.to_string());
     }
@@ -372,6 +391,24 @@ pub fn from_bytes(bytes: &[u8]) -> Result<Checkpoint, CheckpointError> {
         )?;
         agent.twin = Some(Box::new(twin));
     }
+    if config.ddpg.advantage_scale > 0.0 {
+        let count = 1 + usize::from(config.ddpg.twin_critics);
+        for name in &VALUE_NETS[..count] {
+            let mut value = StateValue::new(
+                net(name[0], Activation::Identity)?,
+                config.ddpg.critic_learning_rate,
+            );
+            value.target = net(name[1], Activation::Identity)?;
+            value.optimizer = adam(
+                name[2],
+                name[3],
+                Activation::Identity,
+                number(name[4])?,
+                config.ddpg.critic_learning_rate,
+            )?;
+            agent.values.push(value);
+        }
+    }
     agent.updates = number("updates")?;
     agent.reseed_noise();
     Ok(Checkpoint {
@@ -462,13 +499,24 @@ mod tests {
         round_trip(true);
     }
 
+    #[test]
+    fn an_advantage_critic_checkpoint_keeps_its_state_values() {
+        round_trip_with(false, 0.1);
+        round_trip_with(true, 0.1);
+    }
+
     fn round_trip(twin_critics: bool) {
+        round_trip_with(twin_critics, 0.0);
+    }
+
+    fn round_trip_with(twin_critics: bool, advantage_scale: f32) {
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
         let mut config = TrainConfig {
             seed: 99,
             ..TrainConfig::default()
         };
         config.ddpg.twin_critics = twin_critics;
+        config.ddpg.advantage_scale = advantage_scale;
         let network = NetworkConfig {
             hidden: 8,
             shared_layers: 2,
@@ -507,7 +555,7 @@ mod tests {
             config,
         };
         let dir = std::env::temp_dir().join(format!(
-            "skyherd-ckpt-{}-{twin_critics}",
+            "skyherd-ckpt-{}-{twin_critics}-{advantage_scale}",
             std::process::id()
         ));
         let path = dir.join("c.safetensors");
@@ -528,6 +576,15 @@ mod tests {
             assert_eq!(x.optimizer, y.optimizer);
         }
         assert_eq!(a.twin.is_some(), b.twin.is_some());
+        let values = if advantage_scale > 0.0 { 1 + usize::from(twin_critics) } else { 0 };
+        assert_eq!(a.values.len(), values);
+        assert_eq!(b.values.len(), values);
+        for (x, y) in a.values.iter().zip(&b.values) {
+            assert_eq!(x.value, y.value);
+            assert_eq!(x.target, y.target);
+            assert_eq!(x.optimizer, y.optimizer);
+            assert_ne!(x.value, x.target, "three updates moved the value off its target");
+        }
         assert_eq!(back.progress, original.progress);
         assert_eq!(back.config, original.config);
         assert!(from_bytes(&to_bytes(&original).expect("bytes")[..100]).is_err());

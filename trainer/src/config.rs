@@ -946,6 +946,18 @@ impl TrainConfig {
                 "must be a finite number >= 0 (0: off)",
             );
         }
+        if !(d.advantage_scale.is_finite() && d.advantage_scale >= 0.0) {
+            return bad(
+                "ddpg.advantage_scale",
+                "must be a finite number >= 0 (0: a plain critic)",
+            );
+        }
+        if d.advantage_scale > 0.0 && d.centralised_critic {
+            return bad(
+                "ddpg.advantage_scale",
+                "the advantage-decomposed critic does not take the centralised critic's context",
+            );
+        }
         if !(0.0..=1.0).contains(&d.twin_min_weight) {
             return bad(
                 "ddpg.twin_min_weight",
@@ -1567,6 +1579,32 @@ mod tests {
             ))
             .is_err(),
             "an unknown episode filter is refused"
+        );
+        // The thirty-seventh: the thirty-third with advantage-decomposed critics.
+        let thirty_seventh =
+            TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch37.toml"))
+                .expect("the thirty-seventh config parses");
+        assert_eq!(thirty_seventh.ddpg.advantage_scale, 0.1);
+        assert_eq!(thirty_third.ddpg.advantage_scale, 0.0);
+        assert_eq!(thirty_seventh.training.threads, 2);
+        assert_is_with_undone(&thirty_seventh, &thirty_third, |same| {
+            same.ddpg.advantage_scale = 0.0;
+            same.training.threads = 1;
+        });
+        assert_each_edit_is_refused(
+            include_str!("../configs/mtddpg-scratch37.toml"),
+            &[
+                (
+                    "advantage_scale = 0.1",
+                    "advantage_scale = -0.1",
+                    "ddpg.advantage_scale",
+                ),
+                (
+                    "centralised_critic = false",
+                    "centralised_critic = true",
+                    "ddpg.advantage_scale",
+                ),
+            ],
         );
         assert_each_edit_is_refused(
             include_str!("../configs/mtddpg-scratch34.toml"),

@@ -119,6 +119,18 @@ pub struct DdpgConfig {
     pub self_imitation: f32,
     /// Which ended episodes give their transitions a return for self-imitation.
     pub self_imitation_episodes: SelfImitationEpisodes,
+    /// An advantage-decomposed critic (deep advantage updating: Tallec, Blier and Ollivier,
+    /// *Making Deep Q-learning Methods Robust to Time Discretization*, 2019), with this scale
+    /// `k`: each critic is `Q(s, a) = V(s) + k (A(s, a) - A(s, mu(s)))`, a state-value network
+    /// `V` beside an advantage network `A` (the critic's usual network, fed the features and the
+    /// action). The TD target is `reward_scale r + gamma V'(s')` (with twins, the smaller of the
+    /// two target values, mixed by `twin_min_weight`): `Q(s', mu(s')) = V(s')`, so no target
+    /// action and no target smoothing. The actor climbs `A(s, mu(s))`. At a fine time step one
+    /// action changes the return by a hundredth of its value, and a single network fitting
+    /// `Q(s, a)` learns the action's part inside the errors of the state's; here `A` holds only
+    /// the action's part, on its own scale (`k` about the size of one step's advantage over the
+    /// value). Not with the centralised critic. 0 (the default): off, a plain critic.
+    pub advantage_scale: f32,
 }
 
 /// Which ended episodes self-imitation may learn from ([`DdpgConfig::self_imitation_episodes`]).
@@ -179,6 +191,7 @@ impl Default for DdpgConfig {
             critic_max_others: 7,
             self_imitation: 0.0,
             self_imitation_episodes: SelfImitationEpisodes::Ended,
+            advantage_scale: 0.0,
         }
     }
 }
@@ -243,6 +256,38 @@ pub struct Agent {
     pub twin: Option<Box<TwinCritic>>,
     /// Draws the target smoothing noise; seeded, so a run is reproducible.
     pub noise_rng: ChaCha8Rng,
+    /// With [`DdpgConfig::advantage_scale`], the state values `V`: the first pairs with
+    /// `critic` (then an advantage network), the second with the twin's. Empty otherwise.
+    pub values: Vec<StateValue>,
+}
+
+/// The state-value half of an advantage-decomposed critic ([`DdpgConfig::advantage_scale`]).
+#[derive(Clone, Debug)]
+pub struct StateValue {
+    /// `V(s)`: the features in, one number out.
+    pub value: MultiTaskMlp,
+    /// Slow copy of it, for the TD target.
+    pub target: MultiTaskMlp,
+    /// Its Adam state.
+    pub optimizer: Adam,
+}
+
+impl StateValue {
+    /// A state value around `value` (target a copy, optimiser fresh).
+    pub fn new(value: MultiTaskMlp, learning_rate: f32) -> Self {
+        let optimizer = Adam::new(
+            AdamConfig {
+                learning_rate,
+                ..AdamConfig::default()
+            },
+            value.layers(),
+        );
+        Self {
+            target: value.clone(),
+            value,
+            optimizer,
+        }
+    }
 }
 
 /// TD3's second critic with its target and optimiser.
@@ -272,6 +317,24 @@ impl TwinCritic {
             optimizer,
         }
     }
+}
+
+/// One task's rows for the advantage-decomposed critic step.
+struct AdvantageRows<'a> {
+    task: usize,
+    batch: &'a Batch,
+    /// `reward_scale r + gamma V'(s')`.
+    targets: Vec<f32>,
+    /// The critic inputs `(s, a)` of every row, then `(s, mu(s))` of every row.
+    stacked: Vec<f32>,
+}
+
+/// What one state value and advantage pair learned from a step.
+struct PairGradients {
+    value: MultiTaskMlp,
+    advantage: MultiTaskMlp,
+    loss: f32,
+    q_mean: f32,
 }
 
 /// Seed of the target smoothing noise after `updates` updates.
@@ -395,6 +458,19 @@ impl Agent {
                 config.critic_learning_rate,
             )));
         }
+        if config.advantage_scale > 0.0 {
+            // Drawn after everything else, so that without it a seed draws the same networks.
+            let value_shape = MlpShape {
+                inputs: obs_dim,
+                ..critic_shape
+            };
+            for _ in 0..1 + usize::from(config.twin_critics) {
+                agent.values.push(StateValue::new(
+                    MultiTaskMlp::new(value_shape, rng),
+                    config.critic_learning_rate,
+                ));
+            }
+        }
         agent
     }
 
@@ -425,6 +501,7 @@ impl Agent {
             updates: 0,
             twin: None,
             noise_rng: ChaCha8Rng::seed_from_u64(NOISE_SEED),
+            values: Vec::new(),
         }
     }
 
@@ -452,6 +529,12 @@ impl Agent {
                 twin.optimizer.clear_layer(index);
             }
             twin.target.copy_task_from(&twin.critic, task);
+        }
+        for v in &mut self.values {
+            for index in v.value.reinit_task(task, rng) {
+                v.optimizer.clear_layer(index);
+            }
+            v.target.copy_task_from(&v.value, task);
         }
     }
 
@@ -562,6 +645,9 @@ impl Agent {
             if let Some(twin) = self.twin.as_mut() {
                 twin.target.soft_update_from(&twin.critic, c.tau);
             }
+            for v in &mut self.values {
+                v.target.soft_update_from(&v.value, c.tau);
+            }
         }
         stats
     }
@@ -575,6 +661,9 @@ impl Agent {
         if let Some(twin) = self.twin.as_mut() {
             twin.target.soft_update_from(&twin.critic, self.config.tau);
         }
+        for v in &mut self.values {
+            v.target.soft_update_from(&v.value, self.config.tau);
+        }
         stats
     }
 
@@ -585,6 +674,9 @@ impl Agent {
     /// [`DdpgConfig::twin_min_weight`].
     pub fn td_targets(&mut self, task: usize, b: &Batch) -> Vec<f32> {
         let c = self.config;
+        if !self.values.is_empty() {
+            return self.value_targets(task, b);
+        }
         let obs_dim = self.obs_dim();
         let context_dim = self.context_dim();
         let next_actions = self.target_actions(task, &b.next_obs, b.size);
@@ -617,9 +709,167 @@ impl Agent {
             .collect()
     }
 
+    /// The TD targets of an advantage-decomposed critic ([`DdpgConfig::advantage_scale`]):
+    /// `reward_scale r + gamma continues V'(s')`, with two state values the smaller of their
+    /// targets mixed with their mean by [`DdpgConfig::twin_min_weight`].
+    fn value_targets(&self, task: usize, b: &Batch) -> Vec<f32> {
+        let c = self.config;
+        let mut tape = Tape::default();
+        let mut next_v: Option<Vec<f32>> = None;
+        for v in &self.values {
+            v.target.forward(task, &b.next_obs, b.size, &mut tape);
+            next_v = Some(match next_v {
+                None => tape.output().to_vec(),
+                Some(first) => {
+                    let w = c.twin_min_weight;
+                    first
+                        .iter()
+                        .zip(tape.output())
+                        .map(|(a, b)| w * a.min(*b) + (1.0 - w) * 0.5 * (a + b))
+                        .collect()
+                }
+            });
+        }
+        let next_v = next_v.unwrap_or_else(|| vec![0.0; b.size]);
+        (0..b.size)
+            .map(|r| c.reward_scale * b.rewards[r] + c.gamma * b.continues[r] * next_v[r])
+            .collect()
+    }
+
+    /// The current actor's actions for `rows` observations of `task`, the vertical part zero
+    /// when planar.
+    fn policy_actions(&self, task: usize, obs: &[f32], rows: usize) -> Vec<f32> {
+        let mut tape = Tape::default();
+        self.actor.forward(task, obs, rows, &mut tape);
+        let mut actions = tape.output().to_vec();
+        if self.config.planar {
+            actions
+                .chunks_exact_mut(ACTION_DIM)
+                .for_each(|a| a[2] = 0.0);
+        }
+        actions
+    }
+
+    /// The advantage network paired with state value `index`: the critic, then the twin's.
+    fn advantage_net(&self, index: usize) -> Option<&MultiTaskMlp> {
+        match index {
+            0 => Some(&self.critic),
+            1 => self.twin.as_ref().map(|t| &t.critic),
+            _ => None,
+        }
+    }
+
+    /// 1'. Critic of [`DdpgConfig::advantage_scale`]: regress each `V(s) + k (A(s, a) -
+    ///    A(s, mu(s)))` onto the TD target, both tasks into one gradient; the actor is held.
+    fn advantage_critic_step(&mut self, batches: &[Batch]) -> UpdateStats {
+        let obs_dim = self.obs_dim();
+        let total: usize = batches.iter().map(|b| b.size).sum();
+        if total == 0 {
+            return UpdateStats {
+                critic_loss: f32::NAN,
+                ..UpdateStats::default()
+            };
+        }
+        // Per task: the targets and, stacked, the rows (s, a) then (s, mu(s)).
+        let prepared: Vec<AdvantageRows> = batches
+            .iter()
+            .enumerate()
+            .filter(|(_, b)| b.size > 0)
+            .map(|(task, b)| {
+                let mu = self.policy_actions(task, &b.obs, b.size);
+                let mut stacked = critic_rows(&b.obs, obs_dim, &b.actions, &[], 0, b.size);
+                stacked.extend(critic_rows(&b.obs, obs_dim, &mu, &[], 0, b.size));
+                AdvantageRows {
+                    task,
+                    batch: b,
+                    targets: self.value_targets(task, b),
+                    stacked,
+                }
+            })
+            .collect();
+        // The pairs are independent until their optimiser steps: the twin's runs beside the
+        // first when the pool has a second thread.
+        let (first, second) = rayon::join(
+            || self.advantage_pair_gradients(0, &prepared, total),
+            || self.advantage_pair_gradients(1, &prepared, total),
+        );
+        let mut stats = UpdateStats::default();
+        for (i, pair) in [first, second].into_iter().enumerate() {
+            let Some(pair) = pair else {
+                continue;
+            };
+            if i == 0 {
+                stats.critic_loss = pair.loss;
+                stats.q_mean = pair.q_mean;
+                self.critic_optimizer
+                    .update(self.critic.layers_mut(), pair.advantage.layers());
+            } else if let Some(twin) = self.twin.as_mut() {
+                twin.optimizer
+                    .update(twin.critic.layers_mut(), pair.advantage.layers());
+            }
+            let v = &mut self.values[i];
+            v.optimizer.update(v.value.layers_mut(), pair.value.layers());
+        }
+        self.updates += 1;
+        stats
+    }
+
+    /// Gradients of state value `index` and its advantage network on the prepared rows:
+    /// `Q = V(s) + k (A(s, a) - A(s, mu(s)))` regressed onto the targets (`None` when there
+    /// is no such pair).
+    fn advantage_pair_gradients(
+        &self,
+        index: usize,
+        prepared: &[AdvantageRows<'_>],
+        total: usize,
+    ) -> Option<PairGradients> {
+        let k = self.config.advantage_scale;
+        let value = &self.values.get(index)?.value;
+        let advantage = self.advantage_net(index)?;
+        let mut out = PairGradients {
+            value: value.zeros_like(),
+            advantage: advantage.zeros_like(),
+            loss: 0.0,
+            q_mean: 0.0,
+        };
+        let (mut v_tape, mut a_tape) = (Tape::default(), Tape::default());
+        for rows in prepared {
+            let (task, size) = (rows.task, rows.batch.size);
+            value.forward(task, &rows.batch.obs, size, &mut v_tape);
+            advantage.forward(task, &rows.stacked, 2 * size, &mut a_tape);
+            let (taken, own) = a_tape.output().split_at(size);
+            let q: Vec<f32> = (0..size)
+                .map(|r| v_tape.output()[r] + k * (taken[r] - own[r]))
+                .collect();
+            let d_q: Vec<f32> = q
+                .iter()
+                .zip(&rows.targets)
+                .map(|(q, y)| 2.0 * (q - y) / total as f32)
+                .collect();
+            out.loss += q
+                .iter()
+                .zip(&rows.targets)
+                .map(|(q, y)| (q - y) * (q - y))
+                .sum::<f32>()
+                / total as f32;
+            out.q_mean += q.iter().sum::<f32>() / total as f32;
+            value.backward(&v_tape, &d_q, Some(&mut out.value), false);
+            let d_a: Vec<f32> = d_q
+                .iter()
+                .map(|d| k * d)
+                .chain(d_q.iter().map(|d| -k * d))
+                .collect();
+            advantage.backward(&a_tape, &d_a, Some(&mut out.advantage), false);
+        }
+        Some(out)
+    }
+
     /// 1. Critic: regress Q(s, a) (and TD3's Q2) onto the TD target, both tasks into one
     ///    gradient.
     fn critic_step(&mut self, batches: &[Batch]) -> UpdateStats {
+        if !self.values.is_empty() {
+            return self.advantage_critic_step(batches);
+        }
         let obs_dim = self.obs_dim();
         let total: usize = batches.iter().map(|b| b.size).sum();
         if total == 0 {
@@ -701,11 +951,30 @@ impl Agent {
             // The other herders' actions are the ones they took (MADDPG): only this herder's
             // own action follows the actor.
             let input = critic_rows(&b.obs, obs_dim, &actions, &b.context, context_dim, b.size);
+            // Q(s, mu(s)): the critic's, or with the advantage decomposition V(s).
+            let q_of_actor = match self.values.first() {
+                Some(v) => {
+                    v.value.forward(task, &b.obs, b.size, &mut tape);
+                    tape.output().to_vec()
+                }
+                None => Vec::new(),
+            };
             self.critic.forward(task, &input, b.size, &mut tape);
-            loss -= tape.output().iter().sum::<f32>() / total as f32;
-            mean_abs_q += tape.output().iter().map(|q| q.abs()).sum::<f32>() / total as f32;
-            q_tapes.push((task, actor_tape.clone(), tape.clone()));
+            let q_of_actor = if q_of_actor.is_empty() {
+                tape.output().to_vec()
+            } else {
+                q_of_actor
+            };
+            loss -= q_of_actor.iter().sum::<f32>() / total as f32;
+            mean_abs_q += q_of_actor.iter().map(|q| q.abs()).sum::<f32>() / total as f32;
+            q_tapes.push((task, actor_tape.clone(), tape.clone(), q_of_actor));
         }
+        // d Q / d a: the critic's, or k d A / d a under the advantage decomposition.
+        let action_scale = if self.values.is_empty() {
+            1.0
+        } else {
+            self.config.advantage_scale
+        };
         // TD3+BC's normalisation keeps the imitation weight meaningful whatever Q's scale.
         let q_scale = if imitation_weight > 0.0 {
             1.0 / mean_abs_q.max(1e-3)
@@ -713,8 +982,8 @@ impl Agent {
             1.0
         };
         let mut sil_rows = 0;
-        for (task, a_tape, q_tape) in &q_tapes {
-            let d_q = vec![-q_scale / total as f32; q_tape.batch];
+        for (task, a_tape, q_tape, q_of_actor) in &q_tapes {
+            let d_q = vec![-q_scale * action_scale / total as f32; q_tape.batch];
             let d_input = self
                 .critic
                 .backward(q_tape, &d_q, None, true)
@@ -743,7 +1012,7 @@ impl Agent {
                         planar: self.config.planar,
                         rows: total,
                     },
-                    q_tape.output(),
+                    q_of_actor,
                     &b.returns,
                     a_tape.output(),
                     &b.actions,
@@ -807,12 +1076,34 @@ impl Agent {
         if let Some(twin) = self.twin.as_mut() {
             twin.target = twin.critic.clone();
         }
+        for v in &mut self.values {
+            v.target = v.value.clone();
+        }
     }
 
     /// The deterministic action for one observation.
     pub fn act(&self, task: usize, obs: &[f32]) -> [f32; ACTION_DIM] {
         let y = self.actor.predict(task, obs);
         [y[0], y[1], y[2]]
+    }
+
+    /// The first critic's `Q(s, a)` for one observation and action (a decentralised critic):
+    /// the critic's output, or under [`DdpgConfig::advantage_scale`] `V(s) + k (A(s, a) -
+    /// A(s, mu(s)))`.
+    pub fn q_value(&self, task: usize, obs: &[f32], action: [f32; ACTION_DIM]) -> f32 {
+        let with = |a: &[f32]| {
+            let mut input = obs.to_vec();
+            input.extend_from_slice(a);
+            self.critic.predict(task, &input)[0]
+        };
+        match self.values.first() {
+            None => with(&action),
+            Some(v) => {
+                let own = self.policy_actions(task, obs, 1);
+                v.value.predict(task, obs)[0]
+                    + self.config.advantage_scale * (with(&action) - with(&own))
+            }
+        }
     }
 }
 
@@ -1182,6 +1473,134 @@ mod tests {
             let expected = 0.5 * b.rewards[r] + 0.9 * b.continues[r] * q1[r];
             assert!((single[r] - expected).abs() < 1e-6);
         }
+    }
+
+    #[test]
+    fn advantage_critic_targets_are_the_next_states_value_and_its_loss_is_on_v_plus_the_scaled_advantage() {
+        let mut rng = ChaCha8Rng::seed_from_u64(13);
+        let config = DdpgConfig {
+            twin_critics: true,
+            gamma: 0.9,
+            reward_scale: 0.5,
+            target_noise: 0.2,
+            advantage_scale: 0.1,
+            ..DdpgConfig::default()
+        };
+        let network = NetworkConfig {
+            hidden: 16,
+            shared_layers: 1,
+        };
+        let mut agent = Agent::new(4, 2, network, config, &mut rng);
+        assert_eq!(agent.values.len(), 2, "one state value per critic");
+        for layer in agent.values[1].target.layers_mut() {
+            layer.bias.iter_mut().for_each(|b| *b += 0.3);
+        }
+        let b = batch_of(4, 6, &mut rng);
+        let noise_before = agent.noise_rng.clone();
+        let targets = agent.td_targets(1, &b);
+        assert_eq!(
+            agent.noise_rng, noise_before,
+            "V(s') needs no target action, so no smoothing noise is drawn"
+        );
+        let v = |net: &MultiTaskMlp| {
+            let mut tape = Tape::default();
+            net.forward(1, &b.next_obs, b.size, &mut tape);
+            tape.output().to_vec()
+        };
+        let (v1, v2) = (v(&agent.values[0].target), v(&agent.values[1].target));
+        assert!(v1.iter().zip(&v2).any(|(a, b)| a != b));
+        for r in 0..b.size {
+            let expected = 0.5 * b.rewards[r] + 0.9 * b.continues[r] * v1[r].min(v2[r]);
+            assert!((targets[r] - expected).abs() < 1e-6, "row {r}");
+        }
+        agent.config.twin_min_weight = 0.0;
+        let mean = agent.td_targets(1, &b);
+        for r in 0..b.size {
+            let expected = 0.5 * b.rewards[r] + 0.9 * b.continues[r] * 0.5 * (v1[r] + v2[r]);
+            assert!((mean[r] - expected).abs() < 1e-5, "row {r}");
+        }
+        // One critic step regresses V(s) + k (A(s, a) - A(s, mu(s))) onto those targets (the
+        // loss is read before the step).
+        agent.config.twin_min_weight = 1.0;
+        let forward = |net: &MultiTaskMlp, x: &[f32]| {
+            let mut tape = Tape::default();
+            net.forward(1, x, b.size, &mut tape);
+            tape.output().to_vec()
+        };
+        let mu = agent.policy_actions(1, &b.obs, b.size);
+        let v_now = forward(&agent.values[0].value, &b.obs);
+        let a_taken = forward(&agent.critic, &concat_rows(&b.obs, 4, &b.actions, b.size));
+        let a_own = forward(&agent.critic, &concat_rows(&b.obs, 4, &mu, b.size));
+        let expected_loss = (0..b.size)
+            .map(|r| {
+                let q = v_now[r] + 0.1 * (a_taken[r] - a_own[r]);
+                (q - targets[r]).powi(2)
+            })
+            .sum::<f32>()
+            / b.size as f32;
+        assert!(a_taken.iter().zip(&a_own).any(|(x, y)| (x - y).abs() > 1e-4));
+        let value_before = agent.values[0].value.clone();
+        let stats = agent.update(&[Batch::default(), b.clone()]);
+        assert!(
+            (stats.critic_loss - expected_loss).abs() < 1e-5 * expected_loss.max(1.0),
+            "{} vs {expected_loss}",
+            stats.critic_loss
+        );
+        assert_ne!(agent.values[0].value, value_before, "V learns");
+        // Q at the actor's own action is V(s), whatever A says.
+        let obs = &b.obs[..4];
+        let own = agent.policy_actions(1, obs, 1);
+        let v_here = agent.values[0].value.predict(1, obs)[0];
+        assert!((agent.q_value(1, obs, [own[0], own[1], own[2]]) - v_here).abs() < 1e-6);
+        assert!((agent.q_value(1, obs, [0.9, -0.9, 0.0]) - v_here).abs() > 1e-6);
+        // Off, nothing of it exists and the targets are TD3's.
+        let plain = Agent::new(4, 2, network, DdpgConfig { advantage_scale: 0.0, ..config }, &mut rng);
+        assert!(plain.values.is_empty());
+    }
+
+    #[test]
+    fn the_advantage_critic_learns_the_same_on_one_thread_as_on_two() {
+        let config = DdpgConfig {
+            twin_critics: true,
+            advantage_scale: 0.1,
+            policy_frequency: 1,
+            ..DdpgConfig::default()
+        };
+        let network = NetworkConfig {
+            hidden: 16,
+            shared_layers: 1,
+        };
+        let run = |threads: usize| {
+            let mut rng = ChaCha8Rng::seed_from_u64(21);
+            let mut agent = Agent::new(4, 2, network, config, &mut rng);
+            let batches = [batch_of(4, 8, &mut rng), batch_of(4, 6, &mut rng)];
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .expect("a pool");
+            pool.install(|| {
+                for _ in 0..4 {
+                    agent.update(&batches);
+                }
+            });
+            agent
+        };
+        let (one, two) = (run(1), run(2));
+        assert_eq!(one.actor, two.actor);
+        assert_eq!(one.critic, two.critic);
+        assert_eq!(one.values[1].value, two.values[1].value);
+        assert_eq!(one.twin.map(|t| t.critic), two.twin.map(|t| t.critic));
+    }
+
+    #[test]
+    fn an_advantage_critic_learns_a_different_best_action_per_task() {
+        let config = DdpgConfig {
+            policy_frequency: 2,
+            twin_critics: true,
+            advantage_scale: 1.0,
+            ..bandit_config()
+        };
+        solves_the_two_task_bandit(config, 3000);
     }
 
     /// A batch for a centralised critic: `counts[r]` other herders at `s'` per row.
