@@ -714,23 +714,26 @@ impl Agent {
     /// targets mixed with their mean by [`DdpgConfig::twin_min_weight`].
     fn value_targets(&self, task: usize, b: &Batch) -> Vec<f32> {
         let c = self.config;
-        let mut tape = Tape::default();
-        let mut next_v: Option<Vec<f32>> = None;
-        for v in &self.values {
-            v.target.forward(task, &b.next_obs, b.size, &mut tape);
-            next_v = Some(match next_v {
-                None => tape.output().to_vec(),
-                Some(first) => {
-                    let w = c.twin_min_weight;
-                    first
-                        .iter()
-                        .zip(tape.output())
-                        .map(|(a, b)| w * a.min(*b) + (1.0 - w) * 0.5 * (a + b))
-                        .collect()
-                }
-            });
-        }
-        let next_v = next_v.unwrap_or_else(|| vec![0.0; b.size]);
+        let next_value = |index: usize| {
+            self.values.get(index).map(|v| {
+                let mut tape = Tape::default();
+                v.target.forward(task, &b.next_obs, b.size, &mut tape);
+                tape.output().to_vec()
+            })
+        };
+        // The two target values side by side when the pool has a second thread.
+        let next_v = match rayon::join(|| next_value(0), || next_value(1)) {
+            (Some(first), Some(second)) => {
+                let w = c.twin_min_weight;
+                first
+                    .iter()
+                    .zip(&second)
+                    .map(|(a, b)| w * a.min(*b) + (1.0 - w) * 0.5 * (a + b))
+                    .collect()
+            }
+            (Some(first), None) => first,
+            _ => vec![0.0; b.size],
+        };
         (0..b.size)
             .map(|r| c.reward_scale * b.rewards[r] + c.gamma * b.continues[r] * next_v[r])
             .collect()
@@ -776,13 +779,16 @@ impl Agent {
             .enumerate()
             .filter(|(_, b)| b.size > 0)
             .map(|(task, b)| {
-                let mu = self.policy_actions(task, &b.obs, b.size);
+                let (mu, targets) = rayon::join(
+                    || self.policy_actions(task, &b.obs, b.size),
+                    || self.value_targets(task, b),
+                );
                 let mut stacked = critic_rows(&b.obs, obs_dim, &b.actions, &[], 0, b.size);
                 stacked.extend(critic_rows(&b.obs, obs_dim, &mu, &[], 0, b.size));
                 AdvantageRows {
                     task,
                     batch: b,
-                    targets: self.value_targets(task, b),
+                    targets,
                     stacked,
                 }
             })
@@ -951,20 +957,17 @@ impl Agent {
             // The other herders' actions are the ones they took (MADDPG): only this herder's
             // own action follows the actor.
             let input = critic_rows(&b.obs, obs_dim, &actions, &b.context, context_dim, b.size);
-            // Q(s, mu(s)): the critic's, or with the advantage decomposition V(s).
-            let q_of_actor = match self.values.first() {
-                Some(v) => {
-                    v.value.forward(task, &b.obs, b.size, &mut tape);
-                    tape.output().to_vec()
-                }
-                None => Vec::new(),
-            };
-            self.critic.forward(task, &input, b.size, &mut tape);
-            let q_of_actor = if q_of_actor.is_empty() {
-                tape.output().to_vec()
-            } else {
-                q_of_actor
-            };
+            // Q(s, mu(s)): the critic's, or with the advantage decomposition V(s) (beside the
+            // advantage network's pass when the pool has a second thread).
+            let (q_of_actor, ()) = rayon::join(
+                || {
+                    self.values
+                        .first()
+                        .map(|v| v.value.predict_batch(task, &b.obs, b.size))
+                },
+                || self.critic.forward(task, &input, b.size, &mut tape),
+            );
+            let q_of_actor = q_of_actor.unwrap_or_else(|| tape.output().to_vec());
             loss -= q_of_actor.iter().sum::<f32>() / total as f32;
             mean_abs_q += q_of_actor.iter().map(|q| q.abs()).sum::<f32>() / total as f32;
             q_tapes.push((task, actor_tape.clone(), tape.clone(), q_of_actor));

@@ -316,6 +316,13 @@ impl MultiTaskMlp {
         tape.output().to_vec()
     }
 
+    /// A batch of `batch` inputs through `task`'s layers (no tape kept).
+    pub fn predict_batch(&self, task: usize, x: &[f32], batch: usize) -> Vec<f32> {
+        let mut tape = Tape::default();
+        self.forward(task, x, batch, &mut tape);
+        tape.output().to_vec()
+    }
+
     /// Polyak averaging towards `source`: `self = tau * source + (1 - tau) * self`.
     pub fn soft_update_from(&mut self, source: &MultiTaskMlp, tau: f32) {
         for (t, s) in self.layers_mut().zip(source.layers()) {
