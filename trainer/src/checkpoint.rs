@@ -104,8 +104,20 @@ const NETS: [&str; 4] = ["actor", "critic", "target_actor", "target_critic"];
 /// The state values of an advantage-decomposed critic: the network, its target, its Adam
 /// moments and the metadata key of its Adam step, for the first and the twin's.
 const VALUE_NETS: [[&str; 5]; 2] = [
-    ["value", "target_value", "value_adam_m", "value_adam_v", "value_adam_step"],
-    ["value2", "target_value2", "value2_adam_m", "value2_adam_v", "value2_adam_step"],
+    [
+        "value",
+        "target_value",
+        "value_adam_m",
+        "value_adam_v",
+        "value_adam_step",
+    ],
+    [
+        "value2",
+        "target_value2",
+        "value2_adam_m",
+        "value2_adam_v",
+        "value2_adam_step",
+    ],
 ];
 
 fn layer_groups(net: &MultiTaskMlp) -> [(&'static str, &[Dense]); 3] {
@@ -194,8 +206,16 @@ pub fn to_bytes(checkpoint: &Checkpoint) -> Result<Vec<u8>, CheckpointError> {
     for (v, name) in a.values.iter().zip(VALUE_NETS) {
         push_net(&mut tensors, name[0], &v.value);
         push_net(&mut tensors, name[1], &v.target);
-        push_net(&mut tensors, name[2], &adam_as_net(&v.optimizer.first, &v.value));
-        push_net(&mut tensors, name[3], &adam_as_net(&v.optimizer.second, &v.value));
+        push_net(
+            &mut tensors,
+            name[2],
+            &adam_as_net(&v.optimizer.first, &v.value),
+        );
+        push_net(
+            &mut tensors,
+            name[3],
+            &adam_as_net(&v.optimizer.second, &v.value),
+        );
     }
     let mut meta = net_meta("skyherd-trainer-checkpoint-v1", &a.actor);
     for (v, name) in a.values.iter().zip(VALUE_NETS) {
@@ -576,14 +596,21 @@ mod tests {
             assert_eq!(x.optimizer, y.optimizer);
         }
         assert_eq!(a.twin.is_some(), b.twin.is_some());
-        let values = if advantage_scale > 0.0 { 1 + usize::from(twin_critics) } else { 0 };
+        let values = if advantage_scale > 0.0 {
+            1 + usize::from(twin_critics)
+        } else {
+            0
+        };
         assert_eq!(a.values.len(), values);
         assert_eq!(b.values.len(), values);
         for (x, y) in a.values.iter().zip(&b.values) {
             assert_eq!(x.value, y.value);
             assert_eq!(x.target, y.target);
             assert_eq!(x.optimizer, y.optimizer);
-            assert_ne!(x.value, x.target, "three updates moved the value off its target");
+            assert_ne!(
+                x.value, x.target,
+                "three updates moved the value off its target"
+            );
         }
         assert_eq!(back.progress, original.progress);
         assert_eq!(back.config, original.config);

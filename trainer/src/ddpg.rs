@@ -814,7 +814,8 @@ impl Agent {
                     .update(twin.critic.layers_mut(), pair.advantage.layers());
             }
             let v = &mut self.values[i];
-            v.optimizer.update(v.value.layers_mut(), pair.value.layers());
+            v.optimizer
+                .update(v.value.layers_mut(), pair.value.layers());
         }
         self.updates += 1;
         stats
@@ -1479,7 +1480,8 @@ mod tests {
     }
 
     #[test]
-    fn advantage_critic_targets_are_the_next_states_value_and_its_loss_is_on_v_plus_the_scaled_advantage() {
+    fn advantage_critic_targets_are_the_next_states_value_and_its_loss_is_on_v_plus_the_scaled_advantage()
+     {
         let mut rng = ChaCha8Rng::seed_from_u64(13);
         let config = DdpgConfig {
             twin_critics: true,
@@ -1541,7 +1543,12 @@ mod tests {
             })
             .sum::<f32>()
             / b.size as f32;
-        assert!(a_taken.iter().zip(&a_own).any(|(x, y)| (x - y).abs() > 1e-4));
+        assert!(
+            a_taken
+                .iter()
+                .zip(&a_own)
+                .any(|(x, y)| (x - y).abs() > 1e-4)
+        );
         let value_before = agent.values[0].value.clone();
         let stats = agent.update(&[Batch::default(), b.clone()]);
         assert!(
@@ -1557,7 +1564,16 @@ mod tests {
         assert!((agent.q_value(1, obs, [own[0], own[1], own[2]]) - v_here).abs() < 1e-6);
         assert!((agent.q_value(1, obs, [0.9, -0.9, 0.0]) - v_here).abs() > 1e-6);
         // Off, nothing of it exists and the targets are TD3's.
-        let plain = Agent::new(4, 2, network, DdpgConfig { advantage_scale: 0.0, ..config }, &mut rng);
+        let plain = Agent::new(
+            4,
+            2,
+            network,
+            DdpgConfig {
+                advantage_scale: 0.0,
+                ..config
+            },
+            &mut rng,
+        );
         assert!(plain.values.is_empty());
     }
 
