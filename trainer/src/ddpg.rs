@@ -275,19 +275,24 @@ pub struct StateValue {
 impl StateValue {
     /// A state value around `value` (target a copy, optimiser fresh).
     pub fn new(value: MultiTaskMlp, learning_rate: f32) -> Self {
-        let optimizer = Adam::new(
-            AdamConfig {
-                learning_rate,
-                ..AdamConfig::default()
-            },
-            value.layers(),
-        );
+        let optimizer = fresh_adam(&value, learning_rate);
         Self {
             target: value.clone(),
             value,
             optimizer,
         }
     }
+}
+
+/// A fresh Adam state for `net`'s layers.
+fn fresh_adam(net: &MultiTaskMlp, learning_rate: f32) -> Adam {
+    Adam::new(
+        AdamConfig {
+            learning_rate,
+            ..AdamConfig::default()
+        },
+        net.layers(),
+    )
 }
 
 /// TD3's second critic with its target and optimiser.
@@ -304,13 +309,7 @@ pub struct TwinCritic {
 impl TwinCritic {
     /// A twin around `critic` (target a copy, optimiser fresh).
     pub fn new(critic: MultiTaskMlp, learning_rate: f32) -> Self {
-        let optimizer = Adam::new(
-            AdamConfig {
-                learning_rate,
-                ..AdamConfig::default()
-            },
-            critic.layers(),
-        );
+        let optimizer = fresh_adam(&critic, learning_rate);
         Self {
             target: critic.clone(),
             critic,
@@ -476,20 +475,8 @@ impl Agent {
 
     /// An agent around given networks (targets start as copies, optimisers fresh).
     pub fn from_networks(actor: MultiTaskMlp, critic: MultiTaskMlp, config: DdpgConfig) -> Agent {
-        let actor_optimizer = Adam::new(
-            AdamConfig {
-                learning_rate: config.actor_learning_rate,
-                ..AdamConfig::default()
-            },
-            actor.layers(),
-        );
-        let critic_optimizer = Adam::new(
-            AdamConfig {
-                learning_rate: config.critic_learning_rate,
-                ..AdamConfig::default()
-            },
-            critic.layers(),
-        );
+        let actor_optimizer = fresh_adam(&actor, config.actor_learning_rate);
+        let critic_optimizer = fresh_adam(&critic, config.critic_learning_rate);
         Agent {
             target_actor: actor.clone(),
             target_critic: critic.clone(),
@@ -1480,8 +1467,7 @@ mod tests {
     }
 
     #[test]
-    fn advantage_critic_targets_are_the_next_states_value_and_its_loss_is_on_v_plus_the_scaled_advantage()
-     {
+    fn advantage_targets_are_the_next_value_and_the_loss_is_on_v_plus_scaled_advantage() {
         let mut rng = ChaCha8Rng::seed_from_u64(13);
         let config = DdpgConfig {
             twin_critics: true,
