@@ -163,7 +163,28 @@ pub enum Exploration {
     Gaussian,
     /// Temporally correlated Ornstein-Uhlenbeck noise, one process per herder.
     OrnsteinUhlenbeck,
+    /// Parameter-space noise (Plappert et al., *Parameter Space Noise for Exploration*, 2018):
+    /// each episode flies the actor plus `scale` times a standard normal direction in its
+    /// parameters, drawn when the episode starts and kept to its end, with no noise on the
+    /// actions. The exploration then depends on the state and holds for a whole episode: a
+    /// perturbed actor that comes nearer the targets does so wherever they are, step after
+    /// step, which action noise of any correlation time averages away. The scale adapts, per
+    /// task, so that the perturbed actor's actions differ from the actor's by the configured
+    /// noise std (RMS over recent observations, [`PARAMETER_NOISE_ADAPT`]).
+    Parameter,
 }
+
+/// Parameter-space noise: the scale's first value, per task (on parameters initialised at
+/// about 0.1).
+pub const PARAMETER_NOISE_INITIAL_SCALE: f32 = 0.05;
+/// Parameter-space noise: at each draw the scale is divided by this when the new perturbed
+/// actor's actions are further than the wanted distance from the actor's, multiplied by it
+/// otherwise (Plappert et al. use 1.01 every 50 steps; one draw an episode needs a larger
+/// step).
+pub const PARAMETER_NOISE_ADAPT: f32 = 1.05;
+/// Parameter-space noise: the distance is measured on at most this many of the task's most
+/// recent observations.
+pub const PARAMETER_NOISE_ROWS: usize = 256;
 
 impl Default for DdpgConfig {
     fn default() -> Self {

@@ -323,6 +323,42 @@ impl MultiTaskMlp {
         tape.output().to_vec()
     }
 
+    /// A direction in parameter space for parameter-space noise: a standard normal draw for
+    /// every weight and bias on `task`'s path (its input layer, the shared layers, its output
+    /// layer), zero on the other tasks' own layers. `None` if there is no such task.
+    pub fn random_direction<R: Rng>(&self, task: usize, rng: &mut R) -> Option<MultiTaskMlp> {
+        if task >= self.tasks() {
+            return None;
+        }
+        let mut d = self.zeros_like();
+        let path = std::iter::once(&mut d.task_inputs[task])
+            .chain(d.shared.iter_mut())
+            .chain(std::iter::once(&mut d.task_outputs[task]));
+        for layer in path {
+            for p in layer.weights.iter_mut().chain(layer.bias.iter_mut()) {
+                *p = rng.sample(rand_distr::StandardNormal);
+            }
+        }
+        Some(d)
+    }
+
+    /// `self + scale * direction`, parameter by parameter (`direction` of the same shape, as
+    /// [`random_direction`](Self::random_direction) draws it).
+    pub fn plus_scaled(&self, direction: &MultiTaskMlp, scale: f32) -> MultiTaskMlp {
+        let mut out = self.clone();
+        for (o, d) in out.layers_mut().zip(direction.layers()) {
+            for (p, e) in o
+                .weights
+                .iter_mut()
+                .chain(o.bias.iter_mut())
+                .zip(d.weights.iter().chain(d.bias.iter()))
+            {
+                *p += scale * e;
+            }
+        }
+        out
+    }
+
     /// Polyak averaging towards `source`: `self = tau * source + (1 - tau) * self`.
     pub fn soft_update_from(&mut self, source: &MultiTaskMlp, tau: f32) {
         for (t, s) in self.layers_mut().zip(source.layers()) {

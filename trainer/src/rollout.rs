@@ -22,7 +22,8 @@ use crate::config::{
     WarmStartConfig,
 };
 use crate::ddpg::{
-    ACTION_DIM, DdpgConfig, Exploration, FASTER_MIN, FASTER_WINDOW, SelfImitationEpisodes,
+    ACTION_DIM, DdpgConfig, Exploration, FASTER_MIN, FASTER_WINDOW, PARAMETER_NOISE_ADAPT,
+    PARAMETER_NOISE_INITIAL_SCALE, PARAMETER_NOISE_ROWS, SelfImitationEpisodes,
 };
 use crate::network::{MultiTaskMlp, Tape};
 use crate::replay::{NStep, OneStep, Others, ReplayBuffer, pool_others};
@@ -377,6 +378,76 @@ struct Slot {
     paper_return: f64,
     /// The decision being held (`training.action_repeat` above 1), until its last step.
     held: Option<Held>,
+    /// Parameter-space noise: this episode's direction in the actor's parameters, drawn at its
+    /// first step.
+    perturbation: Option<MultiTaskMlp>,
+}
+
+/// Parameter-space noise's state ([`Exploration::Parameter`]): the scale per task
+/// (`Task::index`) and each task's most recent observations, on which the distance of a new
+/// perturbation is measured.
+#[derive(Clone, Debug)]
+struct ParameterNoise {
+    scale: [f32; Task::COUNT],
+    recent: [Vec<[f32; FEATURES]>; Task::COUNT],
+    next: [usize; Task::COUNT],
+}
+
+impl ParameterNoise {
+    fn new() -> ParameterNoise {
+        ParameterNoise {
+            scale: [PARAMETER_NOISE_INITIAL_SCALE; Task::COUNT],
+            recent: std::array::from_fn(|_| Vec::new()),
+            next: [0; Task::COUNT],
+        }
+    }
+
+    /// Keeps `row` among the task's last [`PARAMETER_NOISE_ROWS`] observations.
+    fn remember(&mut self, task: usize, row: &[f32; FEATURES]) {
+        let recent = &mut self.recent[task];
+        if recent.len() < PARAMETER_NOISE_ROWS {
+            recent.push(*row);
+        } else {
+            recent[self.next[task]] = *row;
+        }
+        self.next[task] = (self.next[task] + 1) % PARAMETER_NOISE_ROWS;
+    }
+}
+
+/// The RMS difference between the actions of actors `a` and `b` for `task` on the observations
+/// `rows`, over the first `dims` action components (normalised units). 0 for no rows.
+pub fn action_distance(
+    a: &MultiTaskMlp,
+    b: &MultiTaskMlp,
+    task: usize,
+    rows: &[[f32; FEATURES]],
+    dims: usize,
+) -> f32 {
+    if rows.is_empty() || dims == 0 {
+        return 0.0;
+    }
+    let inputs = a.inputs();
+    let x: Vec<f32> = rows.iter().flat_map(|r| r[..inputs].iter().copied()).collect();
+    let (ya, yb) = (a.predict_batch(task, &x, rows.len()), b.predict_batch(task, &x, rows.len()));
+    let outputs = a.outputs();
+    let mut sum = 0.0_f64;
+    for k in 0..rows.len() {
+        for j in 0..dims.min(outputs) {
+            let d = f64::from(ya[k * outputs + j] - yb[k * outputs + j]);
+            sum += d * d;
+        }
+    }
+    (sum / (rows.len() * dims.min(outputs)) as f64).sqrt() as f32
+}
+
+/// Parameter-space noise's adaptation: the next scale after a perturbation at `scale` moved the
+/// actions by `distance` where `wanted` was asked for.
+pub fn adapted_scale(scale: f32, distance: f32, wanted: f32) -> f32 {
+    if distance > wanted {
+        scale / PARAMETER_NOISE_ADAPT
+    } else {
+        scale * PARAMETER_NOISE_ADAPT
+    }
 }
 
 /// A decision held over several simulator steps: what was decided, on what, and the reward
@@ -420,6 +491,8 @@ pub struct Rollouts {
     action_repeat: usize,
     /// Recent successes' steps per scenario, for self-imitation's episode filter.
     recent_successes: RecentSuccesses,
+    /// Parameter-space noise's scales and recent observations.
+    parameter_noise: ParameterNoise,
     /// Environment steps taken (summed over slots).
     pub env_steps: u64,
 }
@@ -505,6 +578,7 @@ impl Rollouts {
             excursions: Excursions::from_config(&config.training),
             action_repeat: config.training.action_repeat.max(1),
             recent_successes: RecentSuccesses::default(),
+            parameter_noise: ParameterNoise::new(),
             env_steps: 0,
         };
         for i in 0..count {
@@ -600,6 +674,7 @@ impl Rollouts {
             learner_return: 0.0,
             paper_return: 0.0,
             held: None,
+            perturbation: None,
         };
         observe(&mut self.observer, &mut slot, self.flight_rules);
         Ok(slot)
@@ -881,8 +956,74 @@ impl Rollouts {
         }
     }
 
+    /// Parameter-space noise: every environment flies the actor plus its episode's
+    /// perturbation, drawn (and the task's scale adapted towards `wanted`) at the episode's
+    /// first step. With `wanted` at 0 the actor flies unperturbed.
+    fn perturbed_actions(
+        &mut self,
+        actor: &MultiTaskMlp,
+        wanted: f32,
+    ) -> Vec<Vec<[f32; ACTION_DIM]>> {
+        let dims = if self.ddpg.planar { 2 } else { ACTION_DIM };
+        let mut tape = Tape::default();
+        let mut out = Vec::with_capacity(self.slots.len());
+        for i in 0..self.slots.len() {
+            let task = self.slots[i].draw.task.index();
+            let flown = if wanted > 0.0 {
+                if self.slots[i].perturbation.is_none() {
+                    let direction = actor
+                        .random_direction(task, &mut self.rng)
+                        .unwrap_or_else(|| actor.zeros_like());
+                    let noise = &mut self.parameter_noise;
+                    if !noise.recent[task].is_empty() {
+                        let trial = actor.plus_scaled(&direction, noise.scale[task]);
+                        let d = action_distance(actor, &trial, task, &noise.recent[task], dims);
+                        noise.scale[task] = adapted_scale(noise.scale[task], d, wanted);
+                    }
+                    self.slots[i].perturbation = Some(direction);
+                }
+                self.slots[i]
+                    .perturbation
+                    .as_ref()
+                    .map(|d| actor.plus_scaled(d, self.parameter_noise.scale[task]))
+            } else {
+                None
+            };
+            let slot = &self.slots[i];
+            let input: Vec<f32> = slot
+                .features
+                .iter()
+                .flat_map(|f| f[..actor.inputs()].iter().copied())
+                .collect();
+            flown
+                .as_ref()
+                .unwrap_or(actor)
+                .forward(task, &input, slot.features.len(), &mut tape);
+            let actions: Vec<[f32; ACTION_DIM]> = (0..slot.features.len())
+                .map(|h| std::array::from_fn(|j| tape.output()[h * ACTION_DIM + j].clamp(-1.0, 1.0)))
+                .collect();
+            for f in &slot.features {
+                self.parameter_noise.remember(task, f);
+            }
+            out.push(actions);
+        }
+        out
+    }
+
+    /// The scale of parameter-space noise now, per task (`Task::index`).
+    pub fn parameter_noise_scales(&self) -> [f32; Task::COUNT] {
+        self.parameter_noise.scale
+    }
+
     fn choose_actions(&mut self, controller: &Controller<'_>) -> Vec<Vec<[f32; ACTION_DIM]>> {
         match *controller {
+            Controller::Actor(actor, noise_std)
+                if self.ddpg.exploration == Exploration::Parameter =>
+            {
+                let mut out = self.perturbed_actions(actor, noise_std);
+                self.fly_excursions(&mut out);
+                out
+            }
             Controller::Actor(actor, noise_std) => {
                 let mut out: Vec<Vec<[f32; 3]>> = self
                     .slots

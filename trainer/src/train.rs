@@ -1011,7 +1011,7 @@ impl Run<'_> {
                 observer.progress(
                     self.progress.env_steps - start_steps.min(self.progress.env_steps),
                     &format!(
-                        "succ {:.0}% ret {ret:.1} critic {:.3} Q {:.1} N {:?} {:.1} ms/upd{}",
+                        "succ {:.0}% ret {ret:.1} critic {:.3} Q {:.1} N {:?} {:.1} ms/upd{}{}",
                         100.0 * succ,
                         stats.critic_loss,
                         stats.q_mean,
@@ -1019,6 +1019,12 @@ impl Run<'_> {
                         1e3 * update_time / update_count.max(1) as f64,
                         if config.ddpg.self_imitation > 0.0 {
                             format!(" sil {:.0}%", 100.0 * self_imitation_share)
+                        } else {
+                            String::new()
+                        },
+                        if config.ddpg.exploration == crate::ddpg::Exploration::Parameter {
+                            let s = rollouts.parameter_noise_scales();
+                            format!(" param noise driving {:.4} collecting {:.4}", s[0], s[1])
                         } else {
                             String::new()
                         }
