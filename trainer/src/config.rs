@@ -1606,6 +1606,25 @@ mod tests {
                 ),
             ],
         );
+        // The thirty-eighth: the thirty-seventh with parameter-space noise.
+        let thirty_eighth =
+            TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch38.toml"))
+                .expect("the thirty-eighth config parses");
+        assert_eq!(
+            thirty_eighth.ddpg.exploration,
+            crate::ddpg::Exploration::Parameter
+        );
+        assert_is_with_undone(&thirty_eighth, &thirty_seventh, |same| {
+            same.ddpg.exploration = crate::ddpg::Exploration::OrnsteinUhlenbeck;
+        });
+        assert!(
+            TrainConfig::from_toml_str(&include_str!("../configs/mtddpg-scratch38.toml").replace(
+                "exploration = \"parameter\"",
+                "exploration = \"parameters\""
+            ))
+            .is_err(),
+            "an unknown exploration is refused"
+        );
         assert_each_edit_is_refused(
             include_str!("../configs/mtddpg-scratch34.toml"),
             &[(

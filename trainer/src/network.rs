@@ -381,6 +381,33 @@ mod tests {
     use rand_chacha::ChaCha8Rng;
 
     #[test]
+    fn a_random_direction_lies_on_its_tasks_path_and_adds_linearly() {
+        let mut rng = ChaCha8Rng::seed_from_u64(9);
+        let net = MultiTaskMlp::new(MlpShape::actor(5, 8, 2), &mut rng);
+        assert!(net.random_direction(2, &mut rng).is_none(), "two tasks only");
+        let d = net.random_direction(1, &mut rng).expect("task 1");
+        let all = |l: &Dense, f: fn(&f32) -> bool| l.weights.iter().chain(&l.bias).all(f);
+        assert!(all(&d.task_inputs[0], |p| *p == 0.0), "task 0's input layer untouched");
+        assert!(all(&d.task_outputs[0], |p| *p == 0.0), "task 0's output layer untouched");
+        for layer in [&d.task_inputs[1], &d.shared[0], &d.shared[1], &d.task_outputs[1]] {
+            assert!(all(layer, |p| *p != 0.0), "every parameter on task 1's path drawn");
+        }
+        let moved = net.plus_scaled(&d, 0.5);
+        assert_eq!(moved.task_inputs[0], net.task_inputs[0]);
+        for (m, (n, e)) in moved.layers().zip(net.layers().zip(d.layers())) {
+            for (k, w) in m.weights.iter().enumerate() {
+                assert!((w - (n.weights[k] + 0.5 * e.weights[k])).abs() < 1e-6);
+            }
+        }
+        let back = moved.plus_scaled(&d, -0.5);
+        for (b, n) in back.layers().zip(net.layers()) {
+            for (x, y) in b.weights.iter().zip(&n.weights) {
+                assert!((x - y).abs() < 1e-6);
+            }
+        }
+    }
+
+    #[test]
     fn widening_adds_inputs_that_change_nothing_until_trained() {
         let mut rng = ChaCha8Rng::seed_from_u64(4);
         let net = MultiTaskMlp::new(MlpShape::actor(5, 8, 1), &mut rng);

@@ -1697,6 +1697,108 @@ mod tests {
     }
 
     #[test]
+    fn parameter_noise_flies_one_perturbed_actor_per_episode_and_adapts_its_scale() {
+        let mut config = TrainConfig::default();
+        config.training.episode_step_limit = 5;
+        config.ddpg.n_step = 1;
+        config.ddpg.exploration = Exploration::Parameter;
+        let mut rng = ChaCha8Rng::seed_from_u64(1);
+        let actor = MultiTaskMlp::new(MlpShape::actor(FEATURES, 16, 1), &mut rng);
+        let mut draw = |_: &mut ChaCha8Rng, task| Draw::paper(task, 4, 3);
+        let mut rollouts =
+            Rollouts::new(2, &config, ChaCha8Rng::seed_from_u64(2), &mut draw).expect("envs");
+        let own = |r: &Rollouts, i: usize, net: &MultiTaskMlp| -> Vec<[f32; ACTION_DIM]> {
+            let slot = &r.slots[i];
+            let x: Vec<f32> = slot.features.iter().flatten().copied().collect();
+            let y = net.predict_batch(slot.draw.task.index(), &x, slot.features.len());
+            y.chunks_exact(ACTION_DIM)
+                .map(|a| std::array::from_fn(|j| a[j].clamp(-1.0, 1.0)))
+                .collect()
+        };
+
+        // Within an episode: the same perturbed actor, no per-step noise, not the actor itself.
+        let first = rollouts.perturbed_actions(&actor, 0.3);
+        let again = rollouts.perturbed_actions(&actor, 0.3);
+        assert_eq!(first, again, "no noise on the actions between draws");
+        for (i, actions) in first.iter().enumerate() {
+            let task = rollouts.slots[i].draw.task.index();
+            let direction = rollouts.slots[i].perturbation.clone().expect("drawn");
+            let scale = rollouts.parameter_noise_scales()[task];
+            assert_eq!(*actions, own(&rollouts, i, &actor.plus_scaled(&direction, scale)));
+            assert_ne!(*actions, own(&rollouts, i, &actor), "slot {i} flies a perturbed actor");
+        }
+        // The first draws had no observations to measure on, so the scale has not moved.
+        assert_eq!(rollouts.parameter_noise_scales(), [PARAMETER_NOISE_INITIAL_SCALE; 2]);
+
+        // An episode's end draws a new direction.
+        let before = rollouts.slots[0].perturbation.clone();
+        let mut replay: Vec<ReplayBuffer> = (0..2)
+            .map(|_| ReplayBuffer::new(FEATURES, 3, 100))
+            .collect();
+        let controller = Controller::Actor(&actor, 0.3);
+        let mut ended = 0;
+        for _ in 0..6 {
+            ended += rollouts
+                .step(&controller, &mut replay, None, &mut draw)
+                .expect("step")
+                .len();
+        }
+        assert!(ended >= 2, "the 5-step episodes ended");
+        assert!(rollouts.slots[0].perturbation.is_some());
+        assert_ne!(rollouts.slots[0].perturbation, before, "a new episode, a new direction");
+
+        // The scale follows the wanted distance: actions in [-1, 1] are never 5 apart, so
+        // asking for 5 grows it by the factor at a draw; asking for 1e-9 shrinks it.
+        let grow = |r: &mut Rollouts, wanted: f32| {
+            for s in &mut r.slots {
+                s.perturbation = None;
+            }
+            r.perturbed_actions(&actor, wanted);
+        };
+        let start = rollouts.parameter_noise_scales();
+        grow(&mut rollouts, 5.0);
+        let grown = rollouts.parameter_noise_scales();
+        for t in 0..2 {
+            assert!((grown[t] / start[t] - PARAMETER_NOISE_ADAPT).abs() < 1e-4, "{grown:?}");
+        }
+        grow(&mut rollouts, 1e-9);
+        grow(&mut rollouts, 1e-9);
+        let shrunk = rollouts.parameter_noise_scales();
+        for t in 0..2 {
+            let twice = PARAMETER_NOISE_ADAPT * PARAMETER_NOISE_ADAPT;
+            assert!((grown[t] / shrunk[t] - twice).abs() < 1e-4, "{shrunk:?}");
+        }
+
+        // Without a wanted distance the actor flies as it is.
+        let plain = rollouts.perturbed_actions(&actor, 0.0);
+        for (i, actions) in plain.iter().enumerate() {
+            assert_eq!(*actions, own(&rollouts, i, &actor));
+        }
+    }
+
+    #[test]
+    fn the_action_distance_is_zero_for_one_actor_and_grows_with_the_perturbation() {
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let actor = MultiTaskMlp::new(MlpShape::actor(FEATURES, 16, 1), &mut rng);
+        let rows: Vec<[f32; FEATURES]> = (0..32)
+            .map(|_| std::array::from_fn(|_| rng.random_range(-1.0..1.0)))
+            .collect();
+        assert_eq!(action_distance(&actor, &actor, 1, &rows, 2), 0.0);
+        assert_eq!(action_distance(&actor, &actor, 1, &[], 2), 0.0);
+        let direction = actor.random_direction(1, &mut rng).expect("task 1");
+        let near = actor.plus_scaled(&direction, 0.01);
+        let far = actor.plus_scaled(&direction, 0.1);
+        let (d_near, d_far) = (
+            action_distance(&actor, &near, 1, &rows, 2),
+            action_distance(&actor, &far, 1, &rows, 2),
+        );
+        assert!(d_near > 0.0 && d_far > 2.0 * d_near, "{d_near} {d_far}");
+        assert_eq!(d_far, action_distance(&far, &actor, 1, &rows, 2), "symmetric");
+        assert_eq!(adapted_scale(0.1, 0.5, 0.3), 0.1 / PARAMETER_NOISE_ADAPT);
+        assert_eq!(adapted_scale(0.1, 0.2, 0.3), 0.1 * PARAMETER_NOISE_ADAPT);
+    }
+
+    #[test]
     fn excursions_fly_collecting_herders_at_full_speed_to_a_target_and_leave_driving_alone() {
         let mut config = TrainConfig::default();
         config.training.excursion_rate = 1.0;
