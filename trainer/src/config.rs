@@ -1606,6 +1606,26 @@ mod tests {
                 ),
             ],
         );
+        // The thirty-ninth: the thirty-seventh with flocks of four only for the first 40 %.
+        let thirty_ninth =
+            TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch39.toml"))
+                .expect("the thirty-ninth config parses");
+        assert_eq!(thirty_ninth.stage_at(0.0).targets, vec![4]);
+        assert_eq!(thirty_ninth.stage_at(0.399).targets, vec![4]);
+        assert_eq!(thirty_ninth.stage_at(0.4).targets, vec![4, 4, 8, 8, 16]);
+        assert_eq!(
+            thirty_ninth.stage_at(0.4).herders,
+            thirty_seventh.stage_at(0.0).herders
+        );
+        let mix = thirty_seventh.curriculum.stages.clone();
+        assert_is_with_undone(&thirty_ninth, &thirty_seventh, |same| {
+            same.curriculum.stages = mix;
+        });
+        // The fortieth: the thirty-eighth with its perturbations kept at 0.1, no fall.
+        let fortieth = TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch40.toml"))
+            .expect("the fortieth config parses");
+        assert_eq!(fortieth.ddpg.exploration_noise_at(0.0), 0.1);
+        assert_eq!(fortieth.ddpg.exploration_noise_at(1.0), 0.1);
         // The thirty-eighth: the thirty-seventh with parameter-space noise.
         let thirty_eighth =
             TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch38.toml"))
@@ -1625,6 +1645,12 @@ mod tests {
             .is_err(),
             "an unknown exploration is refused"
         );
+        assert_is_with_undone(&fortieth, &thirty_eighth, |same| {
+            same.ddpg.exploration_noise = 0.3;
+            same.ddpg.exploration_noise_final = Some(0.1);
+            same.ddpg.exploration_noise_decay_from = 0.3;
+            same.ddpg.exploration_noise_decay_to = 0.8;
+        });
         assert_each_edit_is_refused(
             include_str!("../configs/mtddpg-scratch34.toml"),
             &[(

@@ -384,13 +384,30 @@ mod tests {
     fn a_random_direction_lies_on_its_tasks_path_and_adds_linearly() {
         let mut rng = ChaCha8Rng::seed_from_u64(9);
         let net = MultiTaskMlp::new(MlpShape::actor(5, 8, 2), &mut rng);
-        assert!(net.random_direction(2, &mut rng).is_none(), "two tasks only");
+        assert!(
+            net.random_direction(2, &mut rng).is_none(),
+            "two tasks only"
+        );
         let d = net.random_direction(1, &mut rng).expect("task 1");
         let all = |l: &Dense, f: fn(&f32) -> bool| l.weights.iter().chain(&l.bias).all(f);
-        assert!(all(&d.task_inputs[0], |p| *p == 0.0), "task 0's input layer untouched");
-        assert!(all(&d.task_outputs[0], |p| *p == 0.0), "task 0's output layer untouched");
-        for layer in [&d.task_inputs[1], &d.shared[0], &d.shared[1], &d.task_outputs[1]] {
-            assert!(all(layer, |p| *p != 0.0), "every parameter on task 1's path drawn");
+        assert!(
+            all(&d.task_inputs[0], |p| *p == 0.0),
+            "task 0's input layer untouched"
+        );
+        assert!(
+            all(&d.task_outputs[0], |p| *p == 0.0),
+            "task 0's output layer untouched"
+        );
+        for layer in [
+            &d.task_inputs[1],
+            &d.shared[0],
+            &d.shared[1],
+            &d.task_outputs[1],
+        ] {
+            assert!(
+                all(layer, |p| *p != 0.0),
+                "every parameter on task 1's path drawn"
+            );
         }
         let moved = net.plus_scaled(&d, 0.5);
         assert_eq!(moved.task_inputs[0], net.task_inputs[0]);

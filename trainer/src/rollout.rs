@@ -220,7 +220,8 @@ pub struct EpisodeStats {
 /// Who picks the actions.
 pub enum Controller<'a> {
     /// The learned actor plus exploration noise of this std (normalised units), drawn as
-    /// [`DdpgConfig::exploration`] says.
+    /// [`DdpgConfig::exploration`] says (for parameter-space noise: the RMS distance its
+    /// perturbed actors' actions are kept at from the actor's).
     Actor(&'a MultiTaskMlp, f32),
     /// The random-waypoint warm-up: every herder flies at full speed towards a point drawn
     /// uniformly in the arena, and draws a new one when it gets there (or after
@@ -427,8 +428,14 @@ pub fn action_distance(
         return 0.0;
     }
     let inputs = a.inputs();
-    let x: Vec<f32> = rows.iter().flat_map(|r| r[..inputs].iter().copied()).collect();
-    let (ya, yb) = (a.predict_batch(task, &x, rows.len()), b.predict_batch(task, &x, rows.len()));
+    let x: Vec<f32> = rows
+        .iter()
+        .flat_map(|r| r[..inputs].iter().copied())
+        .collect();
+    let (ya, yb) = (
+        a.predict_batch(task, &x, rows.len()),
+        b.predict_batch(task, &x, rows.len()),
+    );
     let outputs = a.outputs();
     let mut sum = 0.0_f64;
     for k in 0..rows.len() {
@@ -1000,7 +1007,9 @@ impl Rollouts {
                 .unwrap_or(actor)
                 .forward(task, &input, slot.features.len(), &mut tape);
             let actions: Vec<[f32; ACTION_DIM]> = (0..slot.features.len())
-                .map(|h| std::array::from_fn(|j| tape.output()[h * ACTION_DIM + j].clamp(-1.0, 1.0)))
+                .map(|h| {
+                    std::array::from_fn(|j| tape.output()[h * ACTION_DIM + j].clamp(-1.0, 1.0))
+                })
                 .collect();
             for f in &slot.features {
                 self.parameter_noise.remember(task, f);
@@ -1724,11 +1733,21 @@ mod tests {
             let task = rollouts.slots[i].draw.task.index();
             let direction = rollouts.slots[i].perturbation.clone().expect("drawn");
             let scale = rollouts.parameter_noise_scales()[task];
-            assert_eq!(*actions, own(&rollouts, i, &actor.plus_scaled(&direction, scale)));
-            assert_ne!(*actions, own(&rollouts, i, &actor), "slot {i} flies a perturbed actor");
+            assert_eq!(
+                *actions,
+                own(&rollouts, i, &actor.plus_scaled(&direction, scale))
+            );
+            assert_ne!(
+                *actions,
+                own(&rollouts, i, &actor),
+                "slot {i} flies a perturbed actor"
+            );
         }
         // The first draws had no observations to measure on, so the scale has not moved.
-        assert_eq!(rollouts.parameter_noise_scales(), [PARAMETER_NOISE_INITIAL_SCALE; 2]);
+        assert_eq!(
+            rollouts.parameter_noise_scales(),
+            [PARAMETER_NOISE_INITIAL_SCALE; 2]
+        );
 
         // An episode's end draws a new direction.
         let before = rollouts.slots[0].perturbation.clone();
@@ -1745,7 +1764,10 @@ mod tests {
         }
         assert!(ended >= 2, "the 5-step episodes ended");
         assert!(rollouts.slots[0].perturbation.is_some());
-        assert_ne!(rollouts.slots[0].perturbation, before, "a new episode, a new direction");
+        assert_ne!(
+            rollouts.slots[0].perturbation, before,
+            "a new episode, a new direction"
+        );
 
         // The scale follows the wanted distance: actions in [-1, 1] are never 5 apart, so
         // asking for 5 grows it by the factor at a draw; asking for 1e-9 shrinks it.
@@ -1759,7 +1781,10 @@ mod tests {
         grow(&mut rollouts, 5.0);
         let grown = rollouts.parameter_noise_scales();
         for t in 0..2 {
-            assert!((grown[t] / start[t] - PARAMETER_NOISE_ADAPT).abs() < 1e-4, "{grown:?}");
+            assert!(
+                (grown[t] / start[t] - PARAMETER_NOISE_ADAPT).abs() < 1e-4,
+                "{grown:?}"
+            );
         }
         grow(&mut rollouts, 1e-9);
         grow(&mut rollouts, 1e-9);
@@ -1793,7 +1818,11 @@ mod tests {
             action_distance(&actor, &far, 1, &rows, 2),
         );
         assert!(d_near > 0.0 && d_far > 2.0 * d_near, "{d_near} {d_far}");
-        assert_eq!(d_far, action_distance(&far, &actor, 1, &rows, 2), "symmetric");
+        assert_eq!(
+            d_far,
+            action_distance(&far, &actor, 1, &rows, 2),
+            "symmetric"
+        );
         assert_eq!(adapted_scale(0.1, 0.5, 0.3), 0.1 / PARAMETER_NOISE_ADAPT);
         assert_eq!(adapted_scale(0.1, 0.2, 0.3), 0.1 * PARAMETER_NOISE_ADAPT);
     }
