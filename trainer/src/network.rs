@@ -346,17 +346,39 @@ impl MultiTaskMlp {
     /// [`random_direction`](Self::random_direction) draws it).
     pub fn plus_scaled(&self, direction: &MultiTaskMlp, scale: f32) -> MultiTaskMlp {
         let mut out = self.clone();
-        for (o, d) in out.layers_mut().zip(direction.layers()) {
-            for (p, e) in o
+        out.assign_plus_scaled(self, direction, scale);
+        out
+    }
+
+    /// Sets `self` to `base + scale * direction` in place, reusing its buffers when it already
+    /// has `base`'s shape (the rollout's perturbed actor, rebuilt every step without
+    /// allocating).
+    pub fn assign_plus_scaled(
+        &mut self,
+        base: &MultiTaskMlp,
+        direction: &MultiTaskMlp,
+        scale: f32,
+    ) {
+        let same_shape = self.layers().count() == base.layers().count()
+            && self
+                .layers()
+                .zip(base.layers())
+                .all(|(a, b)| a.weights.len() == b.weights.len() && a.bias.len() == b.bias.len());
+        if !same_shape {
+            *self = base.clone();
+        }
+        self.output_activation = base.output_activation;
+        for ((o, b), d) in self.layers_mut().zip(base.layers()).zip(direction.layers()) {
+            for ((p, x), e) in o
                 .weights
                 .iter_mut()
                 .chain(o.bias.iter_mut())
+                .zip(b.weights.iter().chain(b.bias.iter()))
                 .zip(d.weights.iter().chain(d.bias.iter()))
             {
-                *p += scale * e;
+                *p = x + scale * e;
             }
         }
-        out
     }
 
     /// Polyak averaging towards `source`: `self = tau * source + (1 - tau) * self`.

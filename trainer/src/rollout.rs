@@ -500,6 +500,9 @@ pub struct Rollouts {
     recent_successes: RecentSuccesses,
     /// Parameter-space noise's scales and recent observations.
     parameter_noise: ParameterNoise,
+    /// Parameter-space noise: the perturbed actor being flown, rebuilt in place for each
+    /// environment every step.
+    perturbed: Option<MultiTaskMlp>,
     /// Environment steps taken (summed over slots).
     pub env_steps: u64,
 }
@@ -586,6 +589,7 @@ impl Rollouts {
             action_repeat: config.training.action_repeat.max(1),
             recent_successes: RecentSuccesses::default(),
             parameter_noise: ParameterNoise::new(),
+            perturbed: None,
             env_steps: 0,
         };
         for i in 0..count {
@@ -989,10 +993,18 @@ impl Rollouts {
                     }
                     self.slots[i].perturbation = Some(direction);
                 }
-                self.slots[i]
-                    .perturbation
-                    .as_ref()
-                    .map(|d| actor.plus_scaled(d, self.parameter_noise.scale[task]))
+                match self.slots[i].perturbation.as_ref() {
+                    Some(direction) => {
+                        let perturbed = self.perturbed.get_or_insert_with(|| actor.clone());
+                        perturbed.assign_plus_scaled(
+                            actor,
+                            direction,
+                            self.parameter_noise.scale[task],
+                        );
+                        Some(&*perturbed)
+                    }
+                    None => None,
+                }
             } else {
                 None
             };
@@ -1003,7 +1015,6 @@ impl Rollouts {
                 .flat_map(|f| f[..actor.inputs()].iter().copied())
                 .collect();
             flown
-                .as_ref()
                 .unwrap_or(actor)
                 .forward(task, &input, slot.features.len(), &mut tape);
             let actions: Vec<[f32; ACTION_DIM]> = (0..slot.features.len())
