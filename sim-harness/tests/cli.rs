@@ -114,3 +114,27 @@ fn run_writes_one_trace_line_per_state() {
     assert_eq!(lines.last().unwrap().world.step, lines.len() as u64 - 1);
     std::fs::remove_file(&path).unwrap();
 }
+
+#[test]
+fn a_reader_that_goes_away_ends_the_run_quietly_not_with_a_panic() {
+    // `skyherd-sim run ... | head -1`: the reader closes its end before the summary comes.
+    let mut child = bin()
+        .args([
+            "run",
+            "--scenario",
+            "paper-collect",
+            "--policy",
+            "lama",
+            "--targets",
+            "4",
+        ])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    drop(child.stdout.take());
+    let out = child.wait_with_output().unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    assert_eq!(out.status.code(), Some(0), "{stderr}");
+}

@@ -242,6 +242,16 @@ fn policy_factory_apart(
     Ok(Arc::new(method))
 }
 
+/// Writes `text` to standard output. A reader that has gone away (`skyherd-sim run ... | head`)
+/// ends the program quietly with status 0, as other Unix tools stop, where `print!` would panic.
+fn emit(text: &str) -> Result<()> {
+    let mut out = std::io::stdout().lock();
+    match out.write_all(text.as_bytes()).and_then(|()| out.flush()) {
+        Err(e) if e.kind() == std::io::ErrorKind::BrokenPipe => std::process::exit(0),
+        other => other.context("writing to standard output"),
+    }
+}
+
 fn main() -> Result<()> {
     match Cli::parse().command {
         Command::Run(args) => run_command(args),
@@ -273,7 +283,7 @@ fn step_command(args: StepArgs) -> Result<()> {
         fs::read_to_string(&state).with_context(|| format!("reading {}", state.display()))?
     };
     let next = step_state_json(&text)?;
-    println!("{}", serde_json::to_string_pretty(&next)?);
+    emit(&format!("{}\n", serde_json::to_string_pretty(&next)?))?;
     Ok(())
 }
 
@@ -416,7 +426,7 @@ fn plot_trajectory_command(args: PlotTrajectoryArgs) -> Result<()> {
 
 fn scenario_command(args: ScenarioArgs) -> Result<()> {
     let ScenarioArgs { preset } = args;
-    print!("{}", Scenario::preset(&preset)?.to_toml()?);
+    emit(&Scenario::preset(&preset)?.to_toml()?)?;
     Ok(())
 }
 
@@ -493,7 +503,7 @@ fn run(
     if let Some(mut wr) = writer {
         wr.flush()?;
     }
-    println!("{}", serde_json::to_string_pretty(&summary)?);
+    emit(&format!("{}\n", serde_json::to_string_pretty(&summary)?))?;
     Ok(())
 }
 
@@ -528,9 +538,9 @@ fn eval(
     let results = pool.install(|| run_sweep(&spec, &|| bar.inc(1)))?;
     bar.finish();
     if json {
-        println!("{}", serde_json::to_string_pretty(&results[0])?);
+        emit(&format!("{}\n", serde_json::to_string_pretty(&results[0])?))?;
     } else if out_dir.is_none() {
-        print!("{}", to_markdown(&results));
+        emit(&to_markdown(&results))?;
     }
     if let Some(dir) = out_dir {
         fs::create_dir_all(dir)?;

@@ -29,6 +29,16 @@ use skyherd_trainer::report::read_log;
 use skyherd_trainer::rollout::Draw;
 use skyherd_trainer::train::{EvolutionOutcome, Observer, evolve_checkpoint, train};
 
+/// `print!` through [`emit`], so that a reader that has gone away ends the program quietly.
+macro_rules! out {
+    ($($arg:tt)*) => { emit(&format!($($arg)*))? };
+}
+
+/// `println!` through [`emit`].
+macro_rules! outln {
+    ($($arg:tt)*) => { emit(&format!("{}\n", format_args!($($arg)*)))? };
+}
+
 #[derive(Parser)]
 #[command(
     name = "skyherd-trainer",
@@ -328,10 +338,10 @@ fn parse_scenario(s: &str) -> Result<EvalScenario> {
     })
 }
 
-fn print_evolution(e: &EvolutionOutcome) {
-    println!("evolution: {:.0} s -> {}", e.wall_s, e.checkpoint.display());
+fn print_evolution(e: &EvolutionOutcome) -> Result<()> {
+    outln!("evolution: {:.0} s -> {}", e.wall_s, e.checkpoint.display());
     for (task, before, after) in &e.tasks {
-        println!(
+        outln!(
             "  {}: held-out check {:.3} -> {:.3}, success {:.0}% -> {:.0}%, time {:.2}x -> {:.2}x lower bound",
             skyherd_sim::task::task_name(*task),
             before.fitness,
@@ -342,7 +352,20 @@ fn print_evolution(e: &EvolutionOutcome) {
             after.time_ratio
         );
     }
-    print!("{}", markdown_table("float (evolved)", &e.eval));
+    out!("{}", markdown_table("float (evolved)", &e.eval));
+    Ok(())
+}
+
+/// Writes `text` to standard output. A reader that has gone away (`skyherd-trainer eval ... |
+/// head`) ends the program quietly with status 0, as other Unix tools stop, where `print!`
+/// would panic.
+fn emit(text: &str) -> Result<()> {
+    use std::io::Write;
+    let mut out = std::io::stdout().lock();
+    match out.write_all(text.as_bytes()).and_then(|()| out.flush()) {
+        Err(e) if e.kind() == std::io::ErrorKind::BrokenPipe => std::process::exit(0),
+        other => other.context("writing to standard output"),
+    }
 }
 
 fn main() -> Result<()> {
@@ -357,7 +380,7 @@ fn main() -> Result<()> {
         Command::AblationReport(args) => {
             let text = skyherd_trainer::ablation::report(&args.runs, &args.out)
                 .with_context(|| format!("reading the runs in {}", args.runs.display()))?;
-            print!("{text}");
+            out!("{text}");
             Ok(())
         }
     }
@@ -419,7 +442,7 @@ fn run_train(args: TrainArgs) -> Result<()> {
     if let Some(b) = bar.bar.take() {
         b.finish();
     }
-    println!(
+    outln!(
         "done: {} env steps, {} episodes, {:.0} s in this process ({:.0} s with any earlier resumed part), {:.2} ms per update",
         outcome.progress.env_steps,
         outcome.progress.episodes,
@@ -427,15 +450,15 @@ fn run_train(args: TrainArgs) -> Result<()> {
         outcome.progress.wall_time_s,
         1e3 * outcome.seconds_per_update
     );
-    println!(
+    outln!(
         "best: success {:.1}%, time {:.2}x lower bound -> {}",
         100.0 * outcome.progress.best_success,
         outcome.progress.best_time_ratio,
         outcome.best_checkpoint.display()
     );
-    print!("{}", markdown_table("float (last)", &outcome.last_eval));
+    out!("{}", markdown_table("float (last)", &outcome.last_eval));
     if let Some(e) = &outcome.evolution {
-        print_evolution(e);
+        print_evolution(e)?;
     }
     Ok(())
 }
@@ -468,7 +491,7 @@ fn run_evolve(args: EvolveArgs) -> Result<()> {
     if let Some(b) = bar.bar.take() {
         b.finish();
     }
-    print_evolution(&outcome);
+    print_evolution(&outcome)?;
     Ok(())
 }
 
@@ -499,8 +522,9 @@ fn run_distill(args: DistillArgs) -> Result<()> {
                         c.time_ratio
                     )
                 });
-                println!(
-                    "round {}: {} teach + {} keep samples, teach success {:.0}%, keep success {:.0}%, MSE teach {:.5} keep {:.5}{check} ({:.0} s)",
+                // A progress line: the distillation goes on if standard output fails.
+                let _ = emit(&format!(
+                    "round {}: {} teach + {} keep samples, teach success {:.0}%, keep success {:.0}%, MSE teach {:.5} keep {:.5}{check} ({:.0} s)\n",
                     r.round,
                     r.teach_samples,
                     r.keep_samples,
@@ -509,15 +533,15 @@ fn run_distill(args: DistillArgs) -> Result<()> {
                     r.teach_loss,
                     r.keep_loss,
                     t0.elapsed().as_secs_f64()
-                )
+                ));
             })
         })?;
-    println!("kept round {}", outcome.best_round);
+    outln!("kept round {}", outcome.best_round);
     if let Some(dir) = out.parent() {
         std::fs::create_dir_all(dir)?;
     }
     checkpoint::save_actor(&out, &outcome.actor)?;
-    println!("wrote {}", out.display());
+    outln!("wrote {}", out.display());
     Ok(())
 }
 
@@ -553,9 +577,10 @@ fn run_export(args: ExportArgs) -> Result<()> {
     let bytes = export(tuned.as_ref().unwrap_or(actor), max_speed, &calibration)?;
     let held_out = record_observations(actor, &scenarios, 2, 3_100_000_000, 600, 3)?;
     let on_calibration = parity(actor, &bytes, &calibration)?;
-    println!(
+    outln!(
         "parity on the calibration observations: RMS {:.4} per component, max {:.4}",
-        on_calibration.rms_component, on_calibration.max_component
+        on_calibration.rms_component,
+        on_calibration.max_component
     );
     let p = parity(actor, &bytes, &held_out)?;
     if let Some(dir) = out.parent() {
@@ -567,17 +592,20 @@ fn run_export(args: ExportArgs) -> Result<()> {
             std::fs::create_dir_all(dir)?;
         }
         checkpoint::save_actor(&path, actor)?;
-        println!("wrote the float actor to {}", path.display());
+        outln!("wrote the float actor to {}", path.display());
     }
-    println!(
+    outln!(
         "wrote {} ({} bytes), calibrated on {} observations",
         out.display(),
         bytes.len(),
         calibration.len()
     );
-    println!(
+    outln!(
         "parity on {} held-out observations: RMS {:.4} per component, {:.4} per vector, max {:.4} (units of max speed)",
-        p.samples, p.rms_component, p.rms_vector, p.max_component
+        p.samples,
+        p.rms_component,
+        p.rms_vector,
+        p.max_component
     );
     Ok(())
 }
@@ -585,7 +613,7 @@ fn run_export(args: ExportArgs) -> Result<()> {
 fn run_plot(args: PlotArgs) -> Result<()> {
     let PlotArgs { log, out } = args;
     skyherd_trainer::report::plot_curve(&read_log(&log)?, &out)?;
-    println!("wrote {}", out.display());
+    outln!("wrote {}", out.display());
     Ok(())
 }
 
@@ -626,24 +654,24 @@ fn run_eval(args: EvalArgs) -> Result<()> {
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
         .build()?;
-    println!("| scenario | method | episodes | success | time (s) | time / bound | path (m) |");
-    println!("|---|---|---|---|---|---|---|");
+    outln!("| scenario | method | episodes | success | time (s) | time / bound | path (m) |");
+    outln!("|---|---|---|---|---|---|---|");
     // Rows are labelled with the model file's name (`mtddpg-v3` for models/mtddpg-v3.skym).
     let name = model
         .file_stem()
         .map_or_else(|| "model".to_owned(), |s| s.to_string_lossy().into_owned());
     pool.install(|| -> Result<()> {
         let rows = evaluate_flat(&scenarios, episodes, seed_base, || ActorPolicy::new(actor))?;
-        print!("{}", markdown_table(&format!("{name} (quantized)"), &rows));
+        out!("{}", markdown_table(&format!("{name} (quantized)"), &rows));
         if let Some(float) = &float_actor {
             let rows = evaluate_flat(&scenarios, episodes, seed_base, || ActorPolicy::new(float))?;
-            print!("{}", markdown_table(&format!("{name} (float)"), &rows));
+            out!("{}", markdown_table(&format!("{name} (float)"), &rows));
         }
         if baselines {
             for method in Method::ALL {
                 let rows =
                     evaluate_flat(&scenarios, episodes, seed_base, || RulePolicy::new(method))?;
-                print!("{}", markdown_table(method.as_str(), &rows));
+                out!("{}", markdown_table(method.as_str(), &rows));
             }
         }
         Ok(())
@@ -669,7 +697,7 @@ fn run_audit_reward(args: AuditRewardArgs) -> Result<()> {
     let rows = pool
         .install(|| audit(&config, &draws, &candidates, args.episodes, args.seed_base))
         .context("an audited scenario")?;
-    println!(
+    outln!(
         "reward `{:?}`, gamma {}, step limit {}, {} episodes each, seeds from {}",
         config.reward.kind,
         config.ddpg.gamma,
@@ -677,14 +705,14 @@ fn run_audit_reward(args: AuditRewardArgs) -> Result<()> {
         args.episodes,
         args.seed_base
     );
-    print!("{}", audit_markdown(&rows));
+    out!("{}", audit_markdown(&rows));
     let report = gate(&rows);
     if report.passed {
-        println!("gate: passed");
+        outln!("gate: passed");
     } else {
-        println!("gate: FAILED");
+        outln!("gate: FAILED");
         for p in &report.problems {
-            println!("  {p}");
+            outln!("  {p}");
         }
         if args.gate {
             std::process::exit(1);
