@@ -240,6 +240,12 @@ pub struct CurriculumStage {
     pub targets: Vec<usize>,
     /// Herder counts M drawn uniformly per episode; 0 means the adaptive count for N.
     pub herders: Vec<usize>,
+    /// (N, M) drawn together, each as likely as one entry of `targets` (whose M comes from
+    /// `herders`), for counts that only make sense together: a lone herder with one or two
+    /// targets, say, without a lone herder facing sixteen. Empty by default, which draws
+    /// exactly as a stage without the field.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub pairs: Vec<[usize; 2]>,
 }
 
 /// The curriculum over N and M. Disabled: every episode draws from the last stage.
@@ -354,6 +360,7 @@ impl Default for CurriculumConfig {
             from_progress,
             targets: targets.to_vec(),
             herders: herders.to_vec(),
+            pairs: Vec::new(),
         };
         CurriculumConfig {
             enabled: true,
@@ -993,6 +1000,12 @@ impl TrainConfig {
                     "every stage needs target counts >= 1 and herder counts",
                 );
             }
+            if s.pairs.iter().any(|&[targets, _]| targets == 0) {
+                return bad(
+                    "curriculum.stages",
+                    "every (N, M) pair needs N >= 1 (M = 0 is the adaptive count)",
+                );
+            }
         }
         if self.fine_tune.actor.is_some() && self.warm_start.enabled {
             return bad(
@@ -1621,6 +1634,22 @@ mod tests {
         assert_is_with_undone(&thirty_ninth, &thirty_seventh, |same| {
             same.curriculum.stages = mix;
         });
+        // The forty-first: the thirty-seventh whose stage also draws (1, 1) and (2, 2).
+        let forty_first =
+            TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch41.toml"))
+                .expect("the forty-first config parses");
+        assert_eq!(forty_first.stage_at(0.0).pairs, vec![[1, 1], [2, 2]]);
+        assert_is_with_undone(&forty_first, &thirty_seventh, |same| {
+            same.curriculum.stages[0].pairs.clear();
+        });
+        assert_each_edit_is_refused(
+            include_str!("../configs/mtddpg-scratch41.toml"),
+            &[(
+                "pairs = [[1, 1], [2, 2]]",
+                "pairs = [[0, 1], [2, 2]]",
+                "curriculum.stages",
+            )],
+        );
         // The fortieth: the thirty-eighth with its perturbations kept at 0.1, no fall.
         let fortieth = TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch40.toml"))
             .expect("the fortieth config parses");

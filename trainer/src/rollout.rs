@@ -1193,8 +1193,15 @@ fn draw_in(
     task: Task,
     progress: f64,
 ) -> Draw {
-    let targets = stage.targets[rng.random_range(0..stage.targets.len())];
-    let herders = stage.herders[rng.random_range(0..stage.herders.len())];
+    // One index over `targets` and then `pairs`: without pairs this is the draw it always was.
+    let pick = rng.random_range(0..stage.targets.len() + stage.pairs.len());
+    let (targets, herders) = match pick.checked_sub(stage.targets.len()) {
+        Some(pair) => (stage.pairs[pair][0], stage.pairs[pair][1]),
+        None => (
+            stage.targets[pick],
+            stage.herders[rng.random_range(0..stage.herders.len())],
+        ),
+    };
     let room = draw_room(config, rng, task, targets);
     let floor = match task {
         Task::Driving => config.curriculum.driving_goal_distance.floor_at(progress),
@@ -1230,6 +1237,61 @@ mod tests {
     use crate::network::MlpShape;
     use crate::replay::Batch;
     use rand::SeedableRng;
+
+    #[test]
+    fn a_stages_pairs_are_drawn_together_and_a_stage_without_them_draws_as_before() {
+        use crate::config::CurriculumStage;
+        let mut config = TrainConfig::default();
+        config.curriculum.enabled = false;
+        config.curriculum.stages = vec![CurriculumStage {
+            from_progress: 0.0,
+            targets: vec![4, 8, 16],
+            herders: vec![2, 4],
+            pairs: Vec::new(),
+        }];
+        // Without pairs: one index into `targets`, then one into `herders`, as always.
+        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        let mut same = ChaCha8Rng::seed_from_u64(11);
+        for _ in 0..200 {
+            let d = draw_from_stage(&config, 0.5, &mut rng, Task::Collecting);
+            let targets = [4, 8, 16][same.random_range(0..3)];
+            let herders = [2, 4][same.random_range(0..2)];
+            assert_eq!((d.targets, d.herders), (targets, herders));
+            // Whatever else the draw reads comes after N and M; start the next one level.
+            same = rng.clone();
+        }
+        // With pairs: each pair as likely as one entry of `targets`, and never split.
+        config.curriculum.stages[0].pairs = vec![[1, 1], [2, 2]];
+        let mut counts = std::collections::HashMap::new();
+        for _ in 0..5_000 {
+            let d = draw_from_stage(&config, 0.5, &mut rng, Task::Collecting);
+            *counts.entry((d.targets, d.herders)).or_insert(0usize) += 1;
+        }
+        let share = |n, m| counts.get(&(n, m)).copied().unwrap_or(0) as f64 / 5_000.0;
+        for pair in [(1, 1), (2, 2)] {
+            assert!(
+                (share(pair.0, pair.1) - 0.2).abs() < 0.03,
+                "{pair:?}: {counts:?}"
+            );
+        }
+        for n in [4, 8, 16] {
+            assert!(
+                (share(n, 2) + share(n, 4) - 0.2).abs() < 0.03,
+                "N = {n}: {counts:?}"
+            );
+        }
+        let allowed = [
+            (1, 1),
+            (2, 2),
+            (4, 2),
+            (4, 4),
+            (8, 2),
+            (8, 4),
+            (16, 2),
+            (16, 4),
+        ];
+        assert!(counts.keys().all(|k| allowed.contains(k)), "{counts:?}");
+    }
 
     #[test]
     fn room_layout_draws_are_long_drives_near_the_walls_and_valid() {
