@@ -1011,11 +1011,16 @@ impl Run<'_> {
                 observer.progress(
                     self.progress.env_steps - start_steps.min(self.progress.env_steps),
                     &format!(
-                        "succ {:.0}% ret {ret:.1} critic {:.3} Q {:.1} N {:?} {:.1} ms/upd{}{}",
+                        "succ {:.0}% ret {ret:.1} critic {:.3} Q {:.1} N {:?}{} {:.1} ms/upd{}{}",
                         100.0 * succ,
                         stats.critic_loss,
                         stats.q_mean,
                         n.targets,
+                        if n.pairs.is_empty() {
+                            String::new()
+                        } else {
+                            format!(" (N, M) {:?}", n.pairs)
+                        },
                         1e3 * update_time / update_count.max(1) as f64,
                         if config.ddpg.self_imitation > 0.0 {
                             format!(" sil {:.0}%", 100.0 * self_imitation_share)
