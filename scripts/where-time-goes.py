@@ -10,7 +10,11 @@ simulator's `run` applies it), keeps each episode's trace in a temporary folder,
 * phases, averaged over episodes: the step at which half the targets are in the goal and all
   are, the herders' median distance to their nearest target, their mean ground speed, the first
   step at which the herders' median distance to their nearest target is under 20 m, and the
-  share of steps in which every herder is over 40 m from its nearest target (holding off).
+  share of steps in which every herder is over 40 m from its nearest target (holding off);
+* how far behind a target the herders push from: whenever a herder's nearest target is
+  outside the goal, within 80 m, and the herder is on its far side from the goal (the cosine
+  between herder-to-target and target-to-goal above 0.8), that distance, as quartiles over
+  all such herder-steps (eq 6's push falls with its square: 3 m/s, the cap, at about 14 m).
 
 Standard library only. Usage (from the repository root, after a release build):
 
@@ -56,7 +60,7 @@ def phases(trace):
     goal = worlds[0]["goal"]
     centre, radius = goal["center"], goal["radius"]
     half = all_in = first_close = None
-    nearest_medians, speeds, held_off = [], [], 0
+    nearest_medians, speeds, held_off, behind = [], [], 0, []
     previous = None
     for w in worlds:
         targets, herders = w["targets"], w["herders"]
@@ -66,6 +70,15 @@ def phases(trace):
         if all_in is None and inside == len(targets):
             all_in = w["step"]
         nearest = [min(math.dist(h[:2], t) for t in targets) for h in herders]
+        for h in herders:
+            d, t = min((math.dist(h[:2], t), t) for t in targets)
+            if d > 80.0 or math.dist(t, centre) <= radius:
+                continue
+            push = (t[0] - h[0], t[1] - h[1])
+            home = (centre[0] - t[0], centre[1] - t[1])
+            norm = math.hypot(*push) * math.hypot(*home)
+            if norm > 0 and (push[0] * home[0] + push[1] * home[1]) / norm > 0.8:
+                behind.append(d)
         nearest_medians.append(st.median(nearest))
         if first_close is None and st.median(nearest) < 20.0:
             first_close = w["step"]
@@ -81,6 +94,7 @@ def phases(trace):
         "speed": st.mean(speeds) if speeds else 0.0,
         "first_close": first_close,
         "held_off": held_off / max(1, len(worlds)),
+        "behind": behind,
     }
 
 
@@ -164,6 +178,16 @@ def main():
         value, _ = mean_of(rows, "held_off")
         cells.append(f"{100 * value:.0f} %")
         print(f"| {name} | " + " | ".join(cells) + " |")
+    print()
+    print("| policy | herder-steps behind a target | distance behind it, quartiles (m) |")
+    print("|---|---|---|")
+    for name, rows in per_policy.items():
+        pooled = [d for r in rows for d in r["behind"]]
+        if len(pooled) < 4:
+            print(f"| {name} | {len(pooled)} | - |")
+            continue
+        q = st.quantiles(pooled, n=4)
+        print(f"| {name} | {len(pooled)} | {q[0]:.0f} / {q[1]:.0f} / {q[2]:.0f} |")
 
 
 if __name__ == "__main__":
