@@ -69,9 +69,10 @@ def phases(trace):
             half = w["step"]
         if all_in is None and inside == len(targets):
             all_in = w["step"]
-        nearest = [min(math.dist(h[:2], t) for t in targets) for h in herders]
-        for h in herders:
-            d, t = min((math.dist(h[:2], t), t) for t in targets)
+        # Each herder's nearest target and its distance, found once for both measures.
+        closest = [min((math.dist(h[:2], t), t) for t in targets) for h in herders]
+        nearest = [d for d, _ in closest]
+        for h, (d, t) in zip(herders, closest):
             if d > 80.0 or math.dist(t, centre) <= radius:
                 continue
             push = (t[0] - h[0], t[1] - h[1])
