@@ -53,6 +53,9 @@
 //! | 46-47 | [`RING_SLOT`](feature::RING_SLOT) | (v4) the drone's slot on the enclosing ring, relative (see below) |
 //! | 48-49 | [`RING_WAY`](feature::RING_WAY) | (v4) where to head now for that slot without crossing the flock, relative |
 //! | 50 | [`RING_BEARING`](feature::RING_BEARING) | (v4) the slot's bearing from straight behind the flock, counter-clockwise, in half turns |
+//! | 51-52 | [`ASSIGNED`](feature::ASSIGNED) | (v5) the drone's own target in the team's assignment (see below), relative |
+//! | 53 | [`ASSIGNED_TO_EDGE`](feature::ASSIGNED_TO_EDGE) | (v5) its distance to the goal edge, `sc(d / R - 1)` |
+//! | 54-55 | [`ASSIGNED_BEHIND`](feature::ASSIGNED_BEHIND) | (v5) the point [`STANDOFF`] x R behind it on its goal line, relative |
 //!
 //! The enclosing ring (features 46-50) is the geometry of the simulator's Enclose rule, which
 //! herds flocks of 256: every drone stands on an arc behind the flock, at the flock radius plus
@@ -62,6 +65,15 @@
 //! there goes round the flock disc (radius plus half the stand-off); both points are kept
 //! [`RING_WALL_MARGIN`] inside the walls. A drone needs its rank
 //! among all herders for its slot, which no v3 feature gives.
+//!
+//! The assignment (features 51-55) gives every drone a target of its own, the same one in
+//! every drone's view: the targets outside the goal are ranked farthest from the goal first,
+//! and rank by rank the nearest herder not yet given one takes it; with more herders than such
+//! targets the ranks wrap round, so the spare herders double up from the farthest
+//! ([`assignment`]). The v1 share (features 11-16) is each drone's nearest targets, which
+//! leaves some drones none and others several and changes owner as the drones move. At most
+//! [`ASSIGNED_RANKS`] ranks are handed out; a drone without one (more herders than that, or
+//! every target in the goal) reads zeros.
 //!
 //! "relative" means `compress((p - own) / R)` in the local frame, with
 //! `compress(v) = v * ln(1 + |v|) / |v|`; `sc(x) = sign(x) ln(1 + |x|)`.
@@ -107,10 +119,16 @@ use libm::{atan2f, cosf, logf, sinf, sqrtf};
 /// v4 appends five features (46-50: the drone's slot on the enclosing ring and the way to it
 /// round the flock) and leaves the first 46 exactly as v3 computes them, so a v3 model still
 /// flies: it reads the first [`V3_FEATURES`] (see [`feature_count`]).
-pub const ENCODER_VERSION: u16 = 4;
+///
+/// v5 appends five more (51-55: the drone's own target in the team's assignment, [`assignment`])
+/// and leaves the first 51 exactly as v4 computes them, so v3 and v4 models still fly.
+pub const ENCODER_VERSION: u16 = 5;
 
-/// Length of the feature vector [`encode`] writes (encoder v4).
-pub const FEATURES: usize = 51;
+/// Length of the feature vector [`encode`] writes (encoder v5).
+pub const FEATURES: usize = 56;
+
+/// Length of encoder v4's feature vector, a prefix of v5's.
+pub const V4_FEATURES: usize = 51;
 
 /// Length of encoder v3's feature vector, a prefix of v4's.
 pub const V3_FEATURES: usize = 46;
@@ -189,9 +207,17 @@ pub mod feature {
     /// (v4) The slot's bearing from straight behind the flock, counter-clockwise, in half
     /// turns.
     pub const RING_BEARING: usize = 50;
+    /// (v5) The drone's own target in the team's assignment ([`assignment`](super::assignment)),
+    /// relative (zero without one).
+    pub const ASSIGNED: Range<usize> = 51..53;
+    /// (v5) Its distance to the goal edge, `sc(d / R - 1)`.
+    pub const ASSIGNED_TO_EDGE: usize = 53;
+    /// (v5) The point [`STANDOFF`](super::STANDOFF) x R behind [`ASSIGNED`] on its goal line,
+    /// relative.
+    pub const ASSIGNED_BEHIND: Range<usize> = 54..56;
 
     /// Every feature in index order, single ones as one-element ranges.
-    const LAYOUT: [Range<usize>; 31] = [
+    const LAYOUT: [Range<usize>; 34] = [
         GOAL,
         CENTROID,
         FARTHEST_TARGET,
@@ -223,10 +249,13 @@ pub mod feature {
         RING_SLOT,
         RING_WAY,
         one(RING_BEARING),
+        ASSIGNED,
+        one(ASSIGNED_TO_EDGE),
+        ASSIGNED_BEHIND,
     ];
 
     /// The vectors (two numbers each).
-    const VECTORS: [Range<usize>; 13] = [
+    const VECTORS: [Range<usize>; 15] = [
         GOAL,
         CENTROID,
         FARTHEST_TARGET,
@@ -240,6 +269,8 @@ pub mod feature {
         NEAREST_WALL,
         RING_SLOT,
         RING_WAY,
+        ASSIGNED,
+        ASSIGNED_BEHIND,
     ];
 
     const fn one(i: usize) -> Range<usize> {
@@ -269,6 +300,10 @@ pub mod feature {
         assert!(
             RING_SLOT.start == super::V3_FEATURES,
             "v4 appends to v3: its first feature sits at V3_FEATURES"
+        );
+        assert!(
+            ASSIGNED.start == super::V4_FEATURES,
+            "v5 appends to v4: its first feature sits at V4_FEATURES"
         );
         assert!(OCTANTS.end - OCTANTS.start == 8, "one feature per octant");
         let mut k = 0;
@@ -302,7 +337,8 @@ pub mod feature {
 pub const fn feature_count(version: u16) -> Option<usize> {
     match version {
         3 => Some(V3_FEATURES),
-        4 => Some(FEATURES),
+        4 => Some(V4_FEATURES),
+        5 => Some(FEATURES),
         _ => None,
     }
 }
@@ -311,7 +347,8 @@ pub const fn feature_count(version: u16) -> Option<usize> {
 pub const fn version_for(features: usize) -> Option<u16> {
     match features {
         V3_FEATURES => Some(3),
-        FEATURES => Some(4),
+        V4_FEATURES => Some(4),
+        FEATURES => Some(5),
         _ => None,
     }
 }
@@ -574,7 +611,7 @@ fn validate(input: &ObsInput<'_>) -> Result<(), ObsError> {
 /// The passes, in order: validate the input; survey the targets (the first pass over them,
 /// which gives the centroid and so the frame); measure their spread (the second pass, in the
 /// frame); then write each group of [`feature`]s: the flock, the drone's share, the drone
-/// itself, the other herders, the walls and the v4 ring slot.
+/// itself, the other herders, the walls, the v4 ring slot and the v5 assignment.
 pub fn encode(input: &ObsInput<'_>, out: &mut [f32; FEATURES]) -> Result<LocalFrame, ObsError> {
     validate(input)?;
     *out = [0.0; FEATURES];
@@ -596,6 +633,7 @@ pub fn encode(input: &ObsInput<'_>, out: &mut [f32; FEATURES]) -> Result<LocalFr
     herder_features(&view, out);
     wall_features(&view, &survey, out);
     ring_features(&view, survey.centroid, spread.flock_radius, out);
+    assigned_features(&view, out);
     Ok(view.frame)
 }
 
@@ -969,6 +1007,116 @@ fn ring_slot(
         point,
         waypoint,
     }
+}
+
+/// v5: the drone's own target in the team's assignment, [`feature::ASSIGNED`] to
+/// [`feature::ASSIGNED_BEHIND`]; zero without one.
+fn assigned_features(view: &View<'_, '_>, out: &mut [f32; FEATURES]) {
+    let input = view.input;
+    let Some(j) = assignment(input) else {
+        return;
+    };
+    let t = input.targets[j];
+    let goal = input.goal;
+    put2(out, feature::ASSIGNED, view.rel(t));
+    out[feature::ASSIGNED_TO_EDGE] = soft(sqrtf(dist2(t, goal)) * view.inv_r - 1.0);
+    let forward = view.frame.forward;
+    let away = unit_or(sub(t, goal), [-forward[0], -forward[1]]);
+    let standoff = STANDOFF * input.goal_radius;
+    put2(
+        out,
+        feature::ASSIGNED_BEHIND,
+        view.rel([t[0] + away[0] * standoff, t[1] + away[1] * standoff]),
+    );
+}
+
+/// How many ranks the assignment hands out at most: as many herders as a world snapshot
+/// carries (`wire::MAX_HERDERS`). It bounds the encoder's fixed buffers and its O(N x ranks +
+/// ranks x M) time.
+pub const ASSIGNED_RANKS: usize = 32;
+
+/// The index of the drone's own target in the team's assignment (encoder v5), or `None` when it
+/// has none. Every drone that sees the same world computes the same assignment, so no two
+/// drones of one rank hold the same target.
+///
+/// The targets outside the goal are ranked farthest from the goal first (ties: lower index
+/// first); the first `K = min(ranks, those targets)` of them are handed out in rank order,
+/// rank `r` (for `r` below the herder count and [`ASSIGNED_RANKS`]) taking target `r mod K`,
+/// each to the nearest herder on the ground not yet given one (ties: lower index). So with
+/// N >= M every herder has a target of its own, and with fewer targets than herders the spare
+/// herders double up from the farthest target on. It is the simulator's Farthest-targets rule's
+/// assignment, as ring slots are its Enclose rule's geometry.
+///
+/// ```
+/// use skyherd_onboard::obs::{assignment, ObsInput};
+/// // Two herders, two targets far apart: each takes the target nearer to it.
+/// let herders = [[0.0_f32, 0.0, 2.0], [200.0, 0.0, 2.0]];
+/// let targets = [[190.0_f32, 20.0], [10.0, 20.0]];
+/// let view = |own_index| ObsInput {
+///     own_index,
+///     herders: &herders,
+///     targets: &targets,
+///     goal: [100.0, 300.0],
+///     goal_radius: 45.0,
+///     area: [400.0, 400.0, 10.0],
+///     max_speed: 5.0,
+/// };
+/// assert_eq!(assignment(&view(0)), Some(1));
+/// assert_eq!(assignment(&view(1)), Some(0));
+/// ```
+pub fn assignment(input: &ObsInput<'_>) -> Option<usize> {
+    let goal = input.goal;
+    let r2 = input.goal_radius * input.goal_radius;
+    let ranks = input.herders.len().min(ASSIGNED_RANKS);
+    if ranks == 0 {
+        return None;
+    }
+    // The `ranks` targets farthest from the goal among those outside it, farthest first:
+    // (squared goal distance, index), kept sorted by insertion.
+    let mut order = [(0.0_f32, 0usize); ASSIGNED_RANKS];
+    let mut k = 0usize;
+    for (j, &t) in input.targets.iter().enumerate() {
+        let d2 = dist2(t, goal);
+        if d2 <= r2 || (k == ranks && d2 <= order[k - 1].0) {
+            continue;
+        }
+        // The first place whose target is nearer: equals keep the lower index first.
+        let mut at = k.min(ranks - 1);
+        while at > 0 && order[at - 1].0 < d2 {
+            at -= 1;
+        }
+        let end = if k < ranks { k } else { ranks - 1 };
+        let mut i = end;
+        while i > at {
+            order[i] = order[i - 1];
+            i -= 1;
+        }
+        order[at] = (d2, j);
+        k = (k + 1).min(ranks);
+    }
+    if k == 0 {
+        return None;
+    }
+    let mut given = [usize::MAX; ASSIGNED_RANKS];
+    for r in 0..ranks {
+        let j = order[r % k].1;
+        let t = input.targets[j];
+        let mut nearest = (f32::INFINITY, usize::MAX);
+        for (i, h) in input.herders.iter().enumerate() {
+            if given[..r].contains(&i) {
+                continue;
+            }
+            let d2 = dist2(t, [h[0], h[1]]);
+            if d2 < nearest.0 {
+                nearest = (d2, i);
+            }
+        }
+        if nearest.1 == input.own_index {
+            return Some(j);
+        }
+        given[r] = nearest.1;
+    }
+    None
 }
 
 /// Arc of the ring rule far from the goal, radians (Strömbom's 120 degrees).
@@ -1371,6 +1519,97 @@ mod tests {
         let bearing = |p: [f32; 2]| atan2f(p[1] - centroid[1], p[0] - centroid[0]);
         let step = (bearing(way) - bearing([260.0, 250.0])).abs();
         assert!((step - ORBIT_STEP).abs() < 1e-2, "bearing step {step}");
+    }
+
+    /// Every drone's assigned target (encoder v5), each from its own view (at most 48 drones).
+    fn assignments(herders: &[[f32; 3]], targets: &[[f32; 2]]) -> heapless::Vec<Option<usize>, 48> {
+        (0..herders.len())
+            .map(|own| assignment(&input(herders, targets, own)))
+            .collect()
+    }
+
+    #[test]
+    fn with_as_many_targets_as_herders_each_drone_has_a_target_of_its_own() {
+        // Four herders in a corner and four targets spread over the arena (goal at 400, 380):
+        // the nearest-target share would give them all to one or two drones.
+        let herders = [
+            [20.0, 20.0, 2.0],
+            [30.0, 20.0, 2.0],
+            [20.0, 30.0, 2.0],
+            [30.0, 30.0, 2.0],
+        ];
+        let targets = [[100.0, 80.0], [300.0, 60.0], [60.0, 300.0], [200.0, 200.0]];
+        let got = assignments(&herders, &targets);
+        let mut taken: heapless::Vec<usize, 4> = got.iter().map(|a| a.expect("one each")).collect();
+        taken.sort_unstable();
+        assert_eq!(taken[..], [0, 1, 2, 3], "{got:?}");
+        // The farthest target from the goal (index 0) goes to the herder nearest to it.
+        assert_eq!(got[3], Some(0), "{got:?}");
+        // Its features point at it, and its behind point lies STANDOFF x R beyond it.
+        let (f, frame) = encode_ok(&input(&herders, &targets, 3));
+        let at = world_point(&f, feature::ASSIGNED, &frame, herders[3]);
+        assert!(
+            (at[0] - 100.0).abs() < 0.05 && (at[1] - 80.0).abs() < 0.05,
+            "{at:?}"
+        );
+        let behind = world_point(&f, feature::ASSIGNED_BEHIND, &frame, herders[3]);
+        let from_goal = sqrtf(dist2(behind, [400.0, 380.0])) - sqrtf(dist2(at, [400.0, 380.0]));
+        assert!((from_goal - STANDOFF * 45.0).abs() < 0.05, "{from_goal}");
+        let edge = sqrtf(dist2([100.0, 80.0], [400.0, 380.0])) / 45.0 - 1.0;
+        assert!((f[feature::ASSIGNED_TO_EDGE] - soft(edge)).abs() < 1e-5);
+    }
+
+    #[test]
+    fn spare_herders_double_up_from_the_farthest_target() {
+        let herders = [
+            [20.0, 20.0, 2.0],
+            [480.0, 20.0, 2.0],
+            [20.0, 480.0, 2.0],
+            [250.0, 480.0, 2.0],
+        ];
+        // Two targets outside the goal, one inside (ignored).
+        let targets = [[50.0, 50.0], [400.0, 380.0], [300.0, 100.0]];
+        let got = assignments(&herders, &targets);
+        // Rank 0 (the farthest, target 0) to herder 0, rank 1 (target 2) to herder 1, then
+        // the ranks wrap: target 0 to the nearest free herder (2), target 2 to the last (3).
+        assert_eq!(got[..], [Some(0), Some(2), Some(0), Some(2)]);
+    }
+
+    #[test]
+    fn with_every_target_in_the_goal_there_is_no_assignment_and_its_features_are_zero() {
+        let herders = [[20.0, 20.0, 2.0], [480.0, 20.0, 2.0]];
+        let targets = [[400.0, 380.0], [410.0, 390.0]];
+        assert_eq!(assignments(&herders, &targets)[..], [None, None]);
+        let (f, _) = encode_ok(&input(&herders, &targets, 1));
+        assert!(
+            f[feature::ASSIGNED.start..feature::ASSIGNED_BEHIND.end]
+                .iter()
+                .all(|&x| x == 0.0)
+        );
+        let (f, _) = encode_ok(&input(&herders, &[], 0));
+        assert!(f[feature::ASSIGNED.start..].iter().all(|&x| x == 0.0));
+    }
+
+    #[test]
+    fn beyond_the_assigned_ranks_a_drone_reads_no_assignment_and_nothing_panics() {
+        let herders: [[f32; 3]; ASSIGNED_RANKS + 8] =
+            core::array::from_fn(|k| [10.0 + 10.0 * k as f32, 20.0, 2.0]);
+        let targets = scatter(64, 5, [150.0, 150.0], 100.0);
+        let got = assignments(&herders, &targets);
+        assert_eq!(got.iter().filter(|a| a.is_some()).count(), ASSIGNED_RANKS);
+        let mut taken: heapless::Vec<usize, 48> = got.iter().flatten().copied().collect();
+        taken.sort_unstable();
+        assert!(
+            taken.windows(2).all(|w| w[0] != w[1]),
+            "one target per rank: {taken:?}"
+        );
+        // An own index out of range has none (encode refuses it before asking).
+        let mut i = input(&herders, &targets, 0);
+        i.own_index = herders.len();
+        assert_eq!(assignment(&i), None);
+        i.herders = &[];
+        i.own_index = 0;
+        assert_eq!(assignment(&i), None);
     }
 
     #[test]

@@ -2,7 +2,7 @@
 //! to `obs::encode` that moves any feature by one ulp (a faster loop that reorders a sum, say)
 //! must be a decision, with a new `ENCODER_VERSION` and new models, not an accident.
 
-use skyherd_onboard::obs::{ENCODER_VERSION, FEATURES, ObsInput, V3_FEATURES, encode};
+use skyherd_onboard::obs::{ENCODER_VERSION, FEATURES, ObsInput, V3_FEATURES, V4_FEATURES, encode};
 
 /// xorshift64: the test's own seeded numbers.
 struct Numbers(u64);
@@ -86,11 +86,23 @@ fn the_v3_prefix_is_pinned_bit_for_bit() {
 }
 
 #[test]
-fn the_encoder_output_is_pinned_bit_for_bit() {
-    // Computed with encoder v4 when mtddpg-v3 was made.
-    const PINNED: u64 = 0x23f8_a442_1e34_fc58;
+fn the_v4_prefix_is_pinned_bit_for_bit() {
+    // Computed with encoder v4 when mtddpg-v3 was made (and checked equal for v5, which only
+    // appends): the v4 models fly on exactly these numbers.
+    const PINNED_V4: u64 = 0x23f8_a442_1e34_fc58;
+    let got = fingerprint(V4_FEATURES);
     assert_eq!(
-        ENCODER_VERSION, 4,
+        got, PINNED_V4,
+        "the first {V4_FEATURES} features changed ({got:#018x}): the v4 models would fly on other numbers"
+    );
+}
+
+#[test]
+fn the_encoder_output_is_pinned_bit_for_bit() {
+    // Computed with encoder v5 when its assignment features were added.
+    const PINNED: u64 = 0xb6ce_d42d_69bf_a7a2;
+    assert_eq!(
+        ENCODER_VERSION, 5,
         "a new encoder version needs a new pinned fingerprint"
     );
     let got = fingerprint(FEATURES);

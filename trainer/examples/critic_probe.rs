@@ -75,6 +75,8 @@ fn main() -> anyhow::Result<()> {
     let mut samples = Vec::new();
     let mut buffers = EncoderBuffers::default();
     let mut features = [0.0_f32; FEATURES];
+    // An actor made for an older encoder reads the prefix that is its encoding.
+    let width = agent.actor.inputs();
     for k in 0..episodes {
         let seed = seed_base + k;
         let (scenario, mut reward) = audit::audited_setup(config, draw);
@@ -96,7 +98,7 @@ fn main() -> anyhow::Result<()> {
                 let frame = buffers
                     .encode(h, &mut features)
                     .map_err(|e| anyhow::anyhow!("encoding herder {h}: {e:?}"))?;
-                let mut a = agent.act(task.index(), &features);
+                let mut a = agent.act(task.index(), &features[..width]);
                 if planar {
                     a[2] = 0.0;
                 }
@@ -110,7 +112,7 @@ fn main() -> anyhow::Result<()> {
                     (lv[2] / max_speed) as f32
                 };
                 let a_lama = [local[0], local[1], vz].map(|x| x.clamp(-1.0, 1.0));
-                let q = |action: [f32; ACTION_DIM]| agent.q_value(task.index(), &features, action);
+                let q = |action: [f32; ACTION_DIM]| agent.q_value(task.index(), &features[..width], action);
                 let p = world.herders[h];
                 let nearest_m = world
                     .targets

@@ -24,7 +24,8 @@ use skyherd_trainer::rollout::Draw;
 use skyherd_trainer::{audit, checkpoint};
 
 /// The feature groups, as `skyherd_onboard::obs` documents them.
-const GROUPS: [(&str, Range<usize>); 27] = [
+/// (A model made for an older encoder does not read the newer groups: they move nothing.)
+const GROUPS: [(&str, Range<usize>); 30] = [
     ("goal", feature::GOAL),
     ("centroid", feature::CENTROID),
     ("farthest target", feature::FARTHEST_TARGET),
@@ -52,10 +53,13 @@ const GROUPS: [(&str, Range<usize>); 27] = [
     ("ring slot", feature::RING_SLOT),
     ("ring way", feature::RING_WAY),
     ("ring bearing", 50..51),
+    ("assigned", feature::ASSIGNED),
+    ("assigned to edge", 53..54),
+    ("assigned behind", feature::ASSIGNED_BEHIND),
 ];
 
 /// The point features whose direction an action may follow.
-const POINTS: [(&str, Range<usize>); 9] = [
+const POINTS: [(&str, Range<usize>); 11] = [
     ("goal", feature::GOAL),
     ("centroid", feature::CENTROID),
     ("farthest target", feature::FARTHEST_TARGET),
@@ -65,6 +69,8 @@ const POINTS: [(&str, Range<usize>); 9] = [
     ("nearest target", feature::NEAREST_TARGET),
     ("ring slot", feature::RING_SLOT),
     ("ring way", feature::RING_WAY),
+    ("assigned", feature::ASSIGNED),
+    ("assigned behind", feature::ASSIGNED_BEHIND),
 ];
 
 fn main() -> anyhow::Result<()> {
@@ -83,6 +89,8 @@ fn main() -> anyhow::Result<()> {
     let mut rows: Vec<[f32; FEATURES]> = Vec::new();
     let mut buffers = EncoderBuffers::default();
     let mut features = [0.0_f32; FEATURES];
+    // An actor made for an older encoder reads the prefix that is its encoding.
+    let width = agent.actor.inputs();
     let mut velocities = Vec::new();
     for k in 0..episodes {
         let (scenario, _) = audit::audited_setup(&cp.config, draw);
@@ -96,7 +104,7 @@ fn main() -> anyhow::Result<()> {
                 let frame = buffers
                     .encode(h, &mut features)
                     .map_err(|e| anyhow::anyhow!("encoding herder {h}: {e:?}"))?;
-                let mut a = agent.act(task.index(), &features);
+                let mut a = agent.act(task.index(), &features[..width]);
                 a[2] = 0.0;
                 velocities.push(frame.action_to_world(a).map(f64::from));
                 rows.push(features);
@@ -108,7 +116,7 @@ fn main() -> anyhow::Result<()> {
         }
     }
     let act = |x: &[f32; FEATURES]| {
-        let a = agent.act(task.index(), x);
+        let a = agent.act(task.index(), &x[..width]);
         [a[0], a[1]]
     };
     let actions: Vec<[f32; 2]> = rows.iter().map(act).collect();

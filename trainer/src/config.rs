@@ -852,9 +852,15 @@ pub struct TrainConfig {
     /// Start DDPG from a trained actor instead of a fresh one.
     pub fine_tune: FineTuneConfig,
     /// The observation encoder version the actor is made for
-    /// (`skyherd_onboard::obs::feature_count`): its input width. mtddpg-v1 was trained on v3.
+    /// (`skyherd_onboard::obs::feature_count`): its input width. mtddpg-v1 was trained on v3;
+    /// the default is [`DEFAULT_ENCODER_VERSION`].
     pub encoder_version: u16,
 }
+
+/// The encoder version a config that names none is trained for: v4, which every config
+/// written before encoder v5 was trained on, so that each still trains exactly as it did. A
+/// config asks for v5's assignment features by name (`encoder_version = 5`).
+pub const DEFAULT_ENCODER_VERSION: u16 = 4;
 
 impl Default for TrainConfig {
     fn default() -> Self {
@@ -870,7 +876,7 @@ impl Default for TrainConfig {
             eval: EvalConfig::default(),
             evolution: EvolutionConfig::default(),
             fine_tune: FineTuneConfig::default(),
-            encoder_version: skyherd_onboard::obs::ENCODER_VERSION,
+            encoder_version: DEFAULT_ENCODER_VERSION,
         }
     }
 }
@@ -1245,7 +1251,7 @@ mod tests {
 
     #[test]
     fn the_shipped_config_file_spells_out_the_defaults() {
-        // All but the encoder: mtddpg-v1 reads encoder v3's features, new runs v4's.
+        // All but the encoder: mtddpg-v1 reads encoder v3's features, configs that name none v4's.
         let text = include_str!("../configs/mtddpg-v1.toml");
         let file = TrainConfig::from_toml_str(text).expect("shipped config parses");
         assert_eq!(file.encoder_version, 3);
@@ -1650,6 +1656,32 @@ mod tests {
                 "curriculum.stages",
             )],
         );
+        // The forty-second: the forty-first without the difference credit in collecting.
+        let forty_second =
+            TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch42.toml"))
+                .expect("the forty-second config parses");
+        assert_eq!(forty_second.reward.audited.credit, 0.0);
+        assert_eq!(
+            forty_second
+                .reward
+                .audited_driving
+                .as_ref()
+                .map(|d| d.credit),
+            Some(5.0),
+            "driving keeps its credit"
+        );
+        assert_is_with_undone(&forty_second, &forty_first, |same| {
+            same.reward.audited.credit = 5.0;
+        });
+        // The forty-third: the forty-first on encoder v5 (the assignment features).
+        let forty_third =
+            TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch43.toml"))
+                .expect("the forty-third config parses");
+        assert_eq!(forty_third.encoder_version, 5);
+        assert_eq!(forty_first.encoder_version, DEFAULT_ENCODER_VERSION);
+        assert_is_with_undone(&forty_third, &forty_first, |same| {
+            same.encoder_version = DEFAULT_ENCODER_VERSION;
+        });
         // The fortieth: the thirty-eighth with its perturbations kept at 0.1, no fall.
         let fortieth = TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch40.toml"))
             .expect("the fortieth config parses");

@@ -40,7 +40,7 @@ use rand_chacha::ChaCha8Rng;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use skyherd_model::Task;
-use skyherd_onboard::obs::{ENCODER_VERSION, FEATURES, feature_count};
+use skyherd_onboard::obs::{FEATURES, feature_count};
 use skyherd_onboard::safety::Limits;
 use skyherd_sim::baseline::{Method, RulePolicy};
 use skyherd_sim::obs::EncoderBuffers;
@@ -101,6 +101,7 @@ pub struct DistillConfig {
     /// The observation encoder version the student is made for
     /// (`skyherd_onboard::obs::feature_count`): its input width. A starting actor made for an
     /// older version, whose features are a prefix, gets zero weights on the new features.
+    /// The default is `config::DEFAULT_ENCODER_VERSION`, as for training.
     pub encoder_version: u16,
 }
 
@@ -122,7 +123,7 @@ impl Default for DistillConfig {
             check: Vec::new(),
             check_seed_base: 8_000_000_000,
             failure_ratio: 12.0,
-            encoder_version: ENCODER_VERSION,
+            encoder_version: crate::config::DEFAULT_ENCODER_VERSION,
         }
     }
 }

@@ -59,6 +59,7 @@ fn the_from_scratch_configs_pass_the_audit() {
         "mtddpg-scratch21.toml",
         "mtddpg-scratch22.toml",
         "mtddpg-scratch30.toml",
+        "mtddpg-scratch42.toml",
     ] {
         passes(name);
     }
