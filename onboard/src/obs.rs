@@ -1081,29 +1081,30 @@ pub fn assignment(input: &ObsInput<'_>) -> Option<usize> {
             continue;
         }
         // The first place whose target is nearer: equals keep the lower index first.
-        let mut at = k.min(ranks - 1);
-        while at > 0 && order[at - 1].0 < d2 {
-            at -= 1;
-        }
-        let end = if k < ranks { k } else { ranks - 1 };
-        let mut i = end;
-        while i > at {
-            order[i] = order[i - 1];
-            i -= 1;
-        }
+        let at = order[..k].partition_point(|e| e.0 >= d2);
+        let last = if k < ranks { k } else { ranks - 1 };
+        order.copy_within(at..last, at + 1);
         order[at] = (d2, j);
         k = (k + 1).min(ranks);
     }
     if k == 0 {
         return None;
     }
+    // The herders given a target so far: a bit each for the first 128 (every onboard team,
+    // at most 32), the list for any beyond (the simulator's large teams).
     let mut given = [usize::MAX; ASSIGNED_RANKS];
+    let mut given_bits = 0u128;
     for r in 0..ranks {
         let j = order[r % k].1;
         let t = input.targets[j];
         let mut nearest = (f32::INFINITY, usize::MAX);
         for (i, h) in input.herders.iter().enumerate() {
-            if given[..r].contains(&i) {
+            let taken = if i < 128 {
+                given_bits >> i & 1 == 1
+            } else {
+                given[..r].contains(&i)
+            };
+            if taken {
                 continue;
             }
             let d2 = dist2(t, [h[0], h[1]]);
@@ -1115,6 +1116,9 @@ pub fn assignment(input: &ObsInput<'_>) -> Option<usize> {
             return Some(j);
         }
         given[r] = nearest.1;
+        if nearest.1 < 128 {
+            given_bits |= 1 << nearest.1;
+        }
     }
     None
 }
