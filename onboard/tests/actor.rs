@@ -8,7 +8,7 @@ use std::path::PathBuf;
 use common::{World, observations, seeded_model};
 use skyherd_model::{ActorShape, FloatActor, FormatError, ModelMeta, SplitMix64, Task, quantize};
 use skyherd_onboard::actor::{Actor, infer_any, infer_quantized_any};
-use skyherd_onboard::obs::{ENCODER_VERSION, FEATURES, V3_FEATURES, feature_count};
+use skyherd_onboard::obs::{ENCODER_VERSION, FEATURES, V3_FEATURES, V4_FEATURES, feature_count};
 
 const GOLDEN_MODEL: &str = "../models/golden/seeded-f46-h32-s2.skym";
 const GOLDEN_VECTORS: &str = "../models/golden/seeded-f46-h32-s2.vectors";
@@ -285,37 +285,42 @@ fn model_for(encoder_version: u16, features: usize) -> Vec<u8> {
 }
 
 #[test]
-fn a_model_for_encoder_v3_flies_on_the_prefix_of_the_v4_features() {
-    // mtddpg-v1 and -v2 were made for encoder v3, whose 46 features v4 keeps in front.
+fn models_for_older_encoders_fly_on_the_prefix_of_the_newest_features() {
+    // mtddpg-v1 and -v2 were made for encoder v3, whose 46 features v4 keeps in front;
+    // mtddpg-v3 and the from-scratch models for v4, whose 51 features v5 keeps in front.
     assert_eq!(feature_count(3), Some(V3_FEATURES));
+    assert_eq!(feature_count(4), Some(V4_FEATURES));
     assert_eq!(feature_count(ENCODER_VERSION), Some(FEATURES));
     assert_eq!(feature_count(2), None);
-    let bytes = model_for(3, V3_FEATURES);
-    let actor = Actor::from_bytes(&bytes).expect("a v3 model loads");
-    let mut features = [0.0f32; FEATURES];
-    let mut rng = SplitMix64::new(9);
-    for f in features.iter_mut() {
-        *f = rng.uniform(-1.0, 1.0) as f32;
+    for (version, width) in [(3, V3_FEATURES), (4, V4_FEATURES)] {
+        let bytes = model_for(version, width);
+        let actor = Actor::from_bytes(&bytes).expect("an older model loads");
+        let mut features = [0.0f32; FEATURES];
+        let mut rng = SplitMix64::new(9);
+        for f in features.iter_mut() {
+            *f = rng.uniform(-1.0, 1.0) as f32;
+        }
+        let a = actor.infer(Task::Driving, &features);
+        // The newer features do not reach an older model.
+        features[width..].fill(123.0);
+        assert_eq!(actor.infer(Task::Driving, &features), a, "v{version}");
     }
-    let a = actor.infer(Task::Driving, &features);
-    // The v4 features do not reach a v3 model.
-    features[V3_FEATURES..].fill(123.0);
-    assert_eq!(actor.infer(Task::Driving, &features), a);
-    // A v3 model must have v3's width, and a v4 model v4's.
-    assert_eq!(
-        Actor::from_bytes(&model_for(3, FEATURES)).unwrap_err(),
-        FormatError::EncoderMismatch {
-            model: (3, FEATURES as u16),
-            expected: (3, V3_FEATURES as u16)
-        }
-    );
-    assert_eq!(
-        Actor::from_bytes(&model_for(4, V3_FEATURES)).unwrap_err(),
-        FormatError::EncoderMismatch {
-            model: (4, V3_FEATURES as u16),
-            expected: (4, FEATURES as u16)
-        }
-    );
+    // Each version's model must have that version's width.
+    for (version, width, wrong) in [
+        (3, V3_FEATURES, FEATURES),
+        (4, V4_FEATURES, V3_FEATURES),
+        (4, V4_FEATURES, FEATURES),
+        (ENCODER_VERSION, FEATURES, V4_FEATURES),
+    ] {
+        assert_eq!(
+            Actor::from_bytes(&model_for(version, wrong)).unwrap_err(),
+            FormatError::EncoderMismatch {
+                model: (version, wrong as u16),
+                expected: (version, width as u16)
+            },
+            "v{version} with {wrong} features"
+        );
+    }
 }
 
 #[test]

@@ -112,7 +112,9 @@ fn main() -> anyhow::Result<()> {
                     (lv[2] / max_speed) as f32
                 };
                 let a_lama = [local[0], local[1], vz].map(|x| x.clamp(-1.0, 1.0));
-                let q = |action: [f32; ACTION_DIM]| agent.q_value(task.index(), &features[..width], action);
+                let q = |action: [f32; ACTION_DIM]| {
+                    agent.q_value(task.index(), &features[..width], action)
+                };
                 let p = world.herders[h];
                 let nearest_m = world
                     .targets
