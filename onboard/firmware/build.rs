@@ -24,7 +24,8 @@ fn main() {
     let calibration: Vec<(Task, Vec<f32>)> = (0..256)
         .map(|i| (Task::ALL[i % 2], (0..51).map(|_| rng.uniform(-2.0, 2.0) as f32).collect()))
         .collect();
-    let meta = ModelMeta { encoder_version: 4, max_speed: 5.0 }; // skyherd_onboard::obs::ENCODER_VERSION
+    // Encoder v4, as the shipped actors; the encoder (v5) serves it its 51-feature prefix.
+    let meta = ModelMeta { encoder_version: 4, max_speed: 5.0 };
     let bytes = quantize(
         &FloatActor::random(shape, 42),
         meta,
