@@ -73,28 +73,21 @@ fn fingerprint(width: usize) -> u64 {
 }
 
 #[test]
-fn the_v3_prefix_is_pinned_bit_for_bit() {
-    // Computed with encoder v3 as it was when mtddpg-v1 and -v2 were made (and checked equal
-    // for the faster encoder that followed, and for v4, which only appends): those models fly
-    // on exactly these numbers.
-    const PINNED_V3: u64 = 0xb2d6_da4c_c815_05ed;
-    let got = fingerprint(V3_FEATURES);
-    assert_eq!(
-        got, PINNED_V3,
-        "the first {V3_FEATURES} features changed ({got:#018x}): the v3 models would fly on other numbers"
-    );
-}
-
-#[test]
-fn the_v4_prefix_is_pinned_bit_for_bit() {
-    // Computed with encoder v4 when mtddpg-v3 was made (and checked equal for v5, which only
-    // appends): the v4 models fly on exactly these numbers.
-    const PINNED_V4: u64 = 0x23f8_a442_1e34_fc58;
-    let got = fingerprint(V4_FEATURES);
-    assert_eq!(
-        got, PINNED_V4,
-        "the first {V4_FEATURES} features changed ({got:#018x}): the v4 models would fly on other numbers"
-    );
+fn the_older_encoders_prefixes_are_pinned_bit_for_bit() {
+    // Each computed with that encoder when its models were made, and checked equal for every
+    // encoder since (each only appends): those models fly on exactly these numbers.
+    for (version, width, pinned) in [
+        // v3: mtddpg-v1 and -v2 (and the faster encoder that followed).
+        (3, V3_FEATURES, 0xb2d6_da4c_c815_05ed_u64),
+        // v4: mtddpg-v3 and the from-scratch models.
+        (4, V4_FEATURES, 0x23f8_a442_1e34_fc58),
+    ] {
+        let got = fingerprint(width);
+        assert_eq!(
+            got, pinned,
+            "the first {width} features changed ({got:#018x}): the v{version} models would fly on other numbers"
+        );
+    }
 }
 
 #[test]

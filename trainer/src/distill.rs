@@ -596,10 +596,11 @@ fn train_round(
 mod tests {
     use super::*;
     use crate::network::MlpShape;
+    use skyherd_onboard::obs::V4_FEATURES;
 
     fn tiny() -> MultiTaskMlp {
         let mut rng = ChaCha8Rng::seed_from_u64(3);
-        MultiTaskMlp::new(MlpShape::actor(FEATURES, 32, 1), &mut rng)
+        MultiTaskMlp::new(MlpShape::actor(V4_FEATURES, 32, 1), &mut rng)
     }
 
     fn tiny_config() -> DistillConfig {
@@ -736,9 +737,18 @@ mod tests {
             updates_per_round: 20,
             ..tiny_config()
         };
-        // For encoder v4 the student reads all features; for v3 it stays as narrow as it was.
+        // For encoder v4 (the default) the student reads v4's features, for v5 all of them;
+        // for v3 it stays as narrow as it was.
         let v4_student = distill(&v3, &config, |_| {}).unwrap().actor;
-        assert_eq!(v4_student.inputs(), FEATURES);
+        assert_eq!(v4_student.inputs(), V4_FEATURES);
+        let v5_config = DistillConfig {
+            encoder_version: 5,
+            ..config.clone()
+        };
+        assert_eq!(
+            distill(&v3, &v5_config, |_| {}).unwrap().actor.inputs(),
+            FEATURES
+        );
         let v3_config = DistillConfig {
             encoder_version: 3,
             ..config.clone()
