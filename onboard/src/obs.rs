@@ -834,18 +834,40 @@ fn share_features(view: &View<'_, '_>, survey: &Survey, out: &mut [f32; FEATURES
     if survey.mine == 0 {
         return;
     }
-    let goal = view.input.goal;
     let n = view.input.targets.len();
-    let t = survey.my_farthest.1;
-    put2(out, feature::SHARE_FARTHEST, view.rel(t));
     out[feature::SHARE] = survey.mine as f32 / n as f32;
-    out[feature::SHARE_FARTHEST_TO_EDGE] = soft(sqrtf(survey.my_farthest.0) * view.inv_r - 1.0);
+    let (d2, t) = survey.my_farthest;
+    target_features(
+        view,
+        t,
+        d2,
+        [feature::SHARE_FARTHEST, feature::SHARE_BEHIND],
+        feature::SHARE_FARTHEST_TO_EDGE,
+        out,
+    );
+}
+
+/// One target a drone is to push in (its share's farthest, its assigned one): the target,
+/// relative, at `points[0]`; its distance to the goal edge, `sc(d / R - 1)` from its squared
+/// goal distance `d2`, at `to_edge`; the point [`STANDOFF`] x R behind it on its goal line,
+/// relative, at `points[1]`.
+fn target_features(
+    view: &View<'_, '_>,
+    t: [f32; 2],
+    d2: f32,
+    points: [Range<usize>; 2],
+    to_edge: usize,
+    out: &mut [f32; FEATURES],
+) {
+    let [at, behind] = points;
+    put2(out, at, view.rel(t));
+    out[to_edge] = soft(sqrtf(d2) * view.inv_r - 1.0);
     let forward = view.frame.forward;
-    let away = unit_or(sub(t, goal), [-forward[0], -forward[1]]);
+    let away = unit_or(sub(t, view.input.goal), [-forward[0], -forward[1]]);
     let standoff = STANDOFF * view.input.goal_radius;
     put2(
         out,
-        feature::SHARE_BEHIND,
+        behind,
         view.rel([t[0] + away[0] * standoff, t[1] + away[1] * standoff]),
     );
 }
@@ -1017,16 +1039,13 @@ fn assigned_features(view: &View<'_, '_>, out: &mut [f32; FEATURES]) {
         return;
     };
     let t = input.targets[j];
-    let goal = input.goal;
-    put2(out, feature::ASSIGNED, view.rel(t));
-    out[feature::ASSIGNED_TO_EDGE] = soft(sqrtf(dist2(t, goal)) * view.inv_r - 1.0);
-    let forward = view.frame.forward;
-    let away = unit_or(sub(t, goal), [-forward[0], -forward[1]]);
-    let standoff = STANDOFF * input.goal_radius;
-    put2(
+    target_features(
+        view,
+        t,
+        dist2(t, input.goal),
+        [feature::ASSIGNED, feature::ASSIGNED_BEHIND],
+        feature::ASSIGNED_TO_EDGE,
         out,
-        feature::ASSIGNED_BEHIND,
-        view.rel([t[0] + away[0] * standoff, t[1] + away[1] * standoff]),
     );
 }
 
