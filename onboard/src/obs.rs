@@ -393,6 +393,9 @@ pub enum ObsError {
     NonFinite,
     /// Goal radius, arena size or speed limit is not positive.
     BadGeometry,
+    /// [`encode_version`] was asked for an encoder version this build cannot serve (see
+    /// [`feature_count`]).
+    UnknownVersion(u16),
 }
 
 impl fmt::Display for ObsError {
@@ -408,6 +411,10 @@ impl fmt::Display for ObsError {
             ObsError::BadGeometry => {
                 f.write_str("goal radius, arena size and speed limit must be positive")
             }
+            ObsError::UnknownVersion(v) => write!(
+                f,
+                "encoder version {v} is not one this build serves (3 to {ENCODER_VERSION})"
+            ),
         }
     }
 }
@@ -613,6 +620,42 @@ fn validate(input: &ObsInput<'_>) -> Result<(), ObsError> {
 /// frame); then write each group of [`feature`]s: the flock, the drone's share, the drone
 /// itself, the other herders, the walls, the v4 ring slot and the v5 assignment.
 pub fn encode(input: &ObsInput<'_>, out: &mut [f32; FEATURES]) -> Result<LocalFrame, ObsError> {
+    encode_version(input, ENCODER_VERSION, out)
+}
+
+/// As [`encode`], for a model made for encoder `version`: writes only the features that
+/// version reads (the first [`feature_count`]`(version)`, bit for bit [`encode`]'s) and zeros
+/// the rest, skipping the passes of later versions. A v4 model's drone does not pay for the v5
+/// assignment, nor a v3 model's for the v4 ring. Fails with [`ObsError::UnknownVersion`] for a
+/// version this build cannot serve.
+///
+/// ```
+/// use skyherd_onboard::obs::{encode, encode_version, feature_count, ObsInput, FEATURES};
+/// let herders = [[100.0_f32, 100.0, 2.0], [140.0, 90.0, 2.0]];
+/// let targets = [[120.0_f32, 120.0], [125.0, 118.0], [118.0, 125.0]];
+/// let input = ObsInput {
+///     own_index: 0,
+///     herders: &herders,
+///     targets: &targets,
+///     goal: [300.0, 300.0],
+///     goal_radius: 45.0,
+///     area: [500.0, 500.0, 10.0],
+///     max_speed: 5.0,
+/// };
+/// let (mut all, mut v4) = ([0.0_f32; FEATURES], [0.0_f32; FEATURES]);
+/// encode(&input, &mut all).unwrap();
+/// encode_version(&input, 4, &mut v4).unwrap();
+/// let width = feature_count(4).unwrap();
+/// assert_eq!(v4[..width], all[..width]);
+/// assert!(v4[width..].iter().all(|&x| x == 0.0));
+/// assert!(encode_version(&input, 2, &mut v4).is_err());
+/// ```
+pub fn encode_version(
+    input: &ObsInput<'_>,
+    version: u16,
+    out: &mut [f32; FEATURES],
+) -> Result<LocalFrame, ObsError> {
+    let width = feature_count(version).ok_or(ObsError::UnknownVersion(version))?;
     validate(input)?;
     *out = [0.0; FEATURES];
 
@@ -632,8 +675,13 @@ pub fn encode(input: &ObsInput<'_>, out: &mut [f32; FEATURES]) -> Result<LocalFr
     own_features(&view, survey.centroid, out);
     herder_features(&view, out);
     wall_features(&view, &survey, out);
-    ring_features(&view, survey.centroid, spread.flock_radius, out);
-    assigned_features(&view, out);
+    // The later versions' groups, each only for a model that reads it.
+    if width > V3_FEATURES {
+        ring_features(&view, survey.centroid, spread.flock_radius, out);
+    }
+    if width > V4_FEATURES {
+        assigned_features(&view, out);
+    }
     Ok(view.frame)
 }
 
@@ -1427,6 +1475,47 @@ mod tests {
         let mut zero_goal = input(&herders, &[], 0);
         zero_goal.goal_radius = 0.0;
         assert_eq!(encode(&zero_goal, &mut out), Err(ObsError::BadGeometry));
+    }
+
+    #[test]
+    fn an_older_versions_encoding_is_the_prefix_it_reads_and_zeros_after_it() {
+        let herders = [
+            [100.0, 100.0, 2.0],
+            [200.0, 90.0, 3.0],
+            [150.0, 260.0, 2.0],
+            [60.0, 220.0, 2.5],
+        ];
+        for (seed, count) in [(3, 1), (5, 4), (7, 9), (13, 64)] {
+            let targets = scatter(count, seed, [160.0, 170.0], 90.0);
+            for own in 0..herders.len() {
+                let i = input(&herders, &targets[..count], own);
+                let (all, frame) = encode_ok(&i);
+                for version in 3..=ENCODER_VERSION {
+                    let width = feature_count(version).expect("a served version");
+                    let mut some = [f32::NAN; FEATURES];
+                    let some_frame = encode_version(&i, version, &mut some).expect("valid input");
+                    assert_eq!(some_frame, frame);
+                    // Bits, not values: the prefix must be the one each model was trained on.
+                    let same = some[..width]
+                        .iter()
+                        .zip(&all[..width])
+                        .all(|(a, b)| a.to_bits() == b.to_bits());
+                    assert!(same, "v{version}: {some:?}\n{all:?}");
+                    assert!(
+                        some[width..].iter().all(|&x| x.to_bits() == 0),
+                        "v{version}"
+                    );
+                }
+            }
+        }
+        let i = input(&herders, &[], 0);
+        let mut out = [0.0; FEATURES];
+        for version in [0, 1, 2, ENCODER_VERSION + 1, u16::MAX] {
+            assert_eq!(
+                encode_version(&i, version, &mut out),
+                Err(ObsError::UnknownVersion(version))
+            );
+        }
     }
 
     #[test]

@@ -28,7 +28,7 @@ use std::path::{Path, PathBuf};
 
 use skyherd_model::{FloatActor, FormatError, Task};
 use skyherd_onboard::actor::Actor;
-use skyherd_onboard::obs::FEATURES;
+use skyherd_onboard::obs::{ENCODER_VERSION, FEATURES, version_for};
 use skyherd_onboard::safety::{self, Braking, Limits, Situation};
 use skyherd_onboard::separation::{Peer, SeparationConfig, separate};
 
@@ -44,11 +44,20 @@ use crate::world::World;
 pub trait Infer {
     /// The action in `[-1, 1]^3` for `features` in `task`.
     fn infer(&self, task: Task, features: &[f32; FEATURES]) -> [f32; 3];
+
+    /// The encoder version whose features the actor reads; the policy encodes only those.
+    fn encoder_version(&self) -> u16 {
+        ENCODER_VERSION
+    }
 }
 
 impl<T: Infer + ?Sized> Infer for &T {
     fn infer(&self, task: Task, features: &[f32; FEATURES]) -> [f32; 3] {
         (**self).infer(task, features)
+    }
+
+    fn encoder_version(&self) -> u16 {
+        (**self).encoder_version()
     }
 }
 
@@ -56,11 +65,23 @@ impl Infer for FloatActor {
     fn infer(&self, task: Task, features: &[f32; FEATURES]) -> [f32; 3] {
         self.forward(task, features)
     }
+
+    fn encoder_version(&self) -> u16 {
+        let width = self
+            .task_inputs
+            .first()
+            .map_or(FEATURES, |layer| layer.inputs);
+        version_for(width).unwrap_or(ENCODER_VERSION)
+    }
 }
 
 impl Infer for Actor<'_> {
     fn infer(&self, task: Task, features: &[f32; FEATURES]) -> [f32; 3] {
         Actor::infer(self, task, features)
+    }
+
+    fn encoder_version(&self) -> u16 {
+        self.model().encoder_version
     }
 }
 
@@ -94,8 +115,8 @@ impl<A: Infer> ActorPolicy<A> {
     /// Wraps `actor`: the bare actor, as the trainer rolls it out.
     pub fn new(actor: A) -> Self {
         ActorPolicy {
+            buffers: EncoderBuffers::for_version(actor.encoder_version()),
             actor,
-            buffers: EncoderBuffers::default(),
             loaded_step: None,
             features: [0.0; FEATURES],
             flight_rules: false,

@@ -1,12 +1,14 @@
 //! The bridge from the simulator's f64 [`World`] to the onboard encoder's f32 [`ObsInput`]: the
 //! trainer and a learned policy call the one encoder in `skyherd-onboard` through this.
 
-use skyherd_onboard::obs::{FEATURES, LocalFrame, ObsError, ObsInput, encode};
+use skyherd_onboard::obs::{
+    ENCODER_VERSION, FEATURES, LocalFrame, ObsError, ObsInput, encode_version,
+};
 
 use crate::world::World;
 
 /// f32 copies of a world's positions, reused from step to step (no allocation once sized).
-#[derive(Clone, Debug, Default)]
+#[derive(Clone, Debug)]
 pub struct EncoderBuffers {
     herders: Vec<[f32; 3]>,
     targets: Vec<[f32; 2]>,
@@ -14,9 +16,38 @@ pub struct EncoderBuffers {
     goal_radius: f32,
     area: [f32; 3],
     max_speed: f32,
+    /// The encoder version whose features [`EncoderBuffers::encode`] writes (the rest stay 0).
+    encoder_version: u16,
+}
+
+impl Default for EncoderBuffers {
+    /// Empty buffers that encode every feature of this build's encoder.
+    fn default() -> Self {
+        EncoderBuffers::for_version(ENCODER_VERSION)
+    }
 }
 
 impl EncoderBuffers {
+    /// Empty buffers that encode only what a model made for encoder `version` reads
+    /// (`skyherd_onboard::obs::encode_version`); an unknown version makes every encode fail
+    /// with `ObsError::UnknownVersion`.
+    pub fn for_version(encoder_version: u16) -> Self {
+        EncoderBuffers {
+            herders: Vec::new(),
+            targets: Vec::new(),
+            goal: [0.0; 2],
+            goal_radius: 0.0,
+            area: [0.0; 3],
+            max_speed: 0.0,
+            encoder_version,
+        }
+    }
+
+    /// The encoder version these buffers encode for.
+    pub fn encoder_version(&self) -> u16 {
+        self.encoder_version
+    }
+
     /// Copies `world` (usually `Env::observation()`) into the buffers.
     pub fn fill(&mut self, world: &World) {
         self.herders.clear();
@@ -65,14 +96,15 @@ impl EncoderBuffers {
         frame
     }
 
-    /// Encodes herder `own_index`'s features into `out`; returns its local frame, in which the
-    /// actor's normalised action is read (`LocalFrame::action_to_world`).
+    /// Encodes herder `own_index`'s features (those of [`EncoderBuffers::encoder_version`], the
+    /// rest 0) into `out`; returns its local frame, in which the actor's normalised action is
+    /// read (`LocalFrame::action_to_world`).
     pub fn encode(
         &self,
         own_index: usize,
         out: &mut [f32; FEATURES],
     ) -> Result<LocalFrame, ObsError> {
-        encode(&self.input(own_index), out)
+        encode_version(&self.input(own_index), self.encoder_version, out)
     }
 }
 

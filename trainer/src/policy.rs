@@ -6,7 +6,7 @@
 //! eval` runs model files the same way; this module adds the training network to it.
 
 use skyherd_model::Task;
-use skyherd_onboard::obs::FEATURES;
+use skyherd_onboard::obs::{ENCODER_VERSION, FEATURES, version_for};
 pub use skyherd_sim::learned::{ActorPolicy, Infer};
 
 use crate::network::MultiTaskMlp;
@@ -16,5 +16,9 @@ impl Infer for MultiTaskMlp {
         // An actor made for an older encoder reads the prefix that is its encoding.
         let y = self.predict(task.index(), &features[..self.inputs().min(FEATURES)]);
         [y[0], y[1], y[2]]
+    }
+
+    fn encoder_version(&self) -> u16 {
+        version_for(self.inputs()).unwrap_or(ENCODER_VERSION)
     }
 }

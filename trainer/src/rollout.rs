@@ -573,7 +573,7 @@ impl Rollouts {
             slots: Vec::with_capacity(count),
             task_slots: None,
             task_env_steps: [0; Task::COUNT],
-            observer: EncoderBuffers::default(),
+            observer: EncoderBuffers::for_version(config.encoder_version),
             rng,
             reward: config.reward.clone(),
             gamma: f64::from(config.ddpg.gamma),

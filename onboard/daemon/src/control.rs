@@ -187,11 +187,21 @@ pub trait OnboardPolicy {
     /// Normalised action, each component in [-1, 1], in the encoder's
     /// [`LocalFrame`](skyherd_onboard::obs::LocalFrame).
     fn act(&mut self, task: Task, features: &[f32; FEATURES]) -> [f32; 3];
+
+    /// The encoder version whose features the policy reads; the daemon encodes only those
+    /// ([`obs::encode_version`]), so a model for an older encoder does not pay for later ones.
+    fn encoder_version(&self) -> u16 {
+        obs::ENCODER_VERSION
+    }
 }
 
 impl OnboardPolicy for Actor<'_> {
     fn act(&mut self, task: Task, features: &[f32; FEATURES]) -> [f32; 3] {
         self.infer(task, features)
+    }
+
+    fn encoder_version(&self) -> u16 {
+        self.model().encoder_version
     }
 }
 
@@ -1006,7 +1016,7 @@ impl<P: OnboardPolicy> DaemonCore<P> {
                 area: world.area,
                 max_speed,
             };
-            match obs::encode(&input, &mut self.features) {
+            match obs::encode_version(&input, self.policy.encoder_version(), &mut self.features) {
                 Ok(frame) => {
                     let action = self.policy.act(mission.task, &self.features);
                     (frame.action_to_world(action), None)
@@ -1156,7 +1166,12 @@ mod tests {
     }
 
     /// Feeds the autopilot's view at `t` ms: heartbeat and position (NED of sim (45, 30, 2)).
-    fn autopilot(core: &mut DaemonCore<TowardsGoal>, t: u64, armed: bool, custom_mode: u32) {
+    fn autopilot<P: OnboardPolicy>(
+        core: &mut DaemonCore<P>,
+        t: u64,
+        armed: bool,
+        custom_mode: u32,
+    ) {
         core.on_heartbeat(Millis(t), if armed { ARMED } else { 0 }, custom_mode);
         core.on_local_position(Millis(t), sim_to_ned([45.0, 30.0, 2.0]));
     }
@@ -1699,6 +1714,58 @@ mod tests {
         assert_eq!(d.status, Status::Holding(HoldReason::Complete));
         assert_eq!(d.status.to_string(), "holding: mission complete");
         assert_eq!((d.setpoint, d.command), (Some(Setpoint::HOLD), None));
+    }
+
+    /// Flies "towards the goal", says it reads encoder `version`, and keeps what it was given.
+    struct Versioned {
+        version: u16,
+        seen: std::rc::Rc<std::cell::Cell<Option<[f32; FEATURES]>>>,
+    }
+    impl OnboardPolicy for Versioned {
+        fn act(&mut self, _task: Task, features: &[f32; FEATURES]) -> [f32; 3] {
+            self.seen.set(Some(*features));
+            [1.0, 0.0, 0.0]
+        }
+        fn encoder_version(&self) -> u16 {
+            self.version
+        }
+    }
+
+    /// One tick of a started mission flown by a policy that reads encoder `version`: the
+    /// status and the features the policy was given.
+    fn tick_reading(version: u16) -> (Status, Option<[f32; FEATURES]>) {
+        let seen = std::rc::Rc::default();
+        let policy = Versioned {
+            version,
+            seen: std::rc::Rc::clone(&seen),
+        };
+        let mut c = DaemonCore::new(CoreConfig::new(ID, 1, Flavour::Px4), policy);
+        autopilot(&mut c, 0, true, PX4_OFFBOARD);
+        c.on_uplink(Millis(0), start());
+        c.on_uplink(Millis(0), snapshot(1));
+        (c.tick(Millis(0)).status, seen.get())
+    }
+
+    #[test]
+    fn the_policy_is_given_the_features_of_its_encoder_version_and_an_unknown_one_holds() {
+        let (status, all) = tick_reading(obs::ENCODER_VERSION);
+        assert_eq!(status, Status::Flying(Reasons::NONE));
+        let all = all.expect("the policy was asked");
+        for version in [3, 4] {
+            let (status, some) = tick_reading(version);
+            assert_eq!(status, Status::Flying(Reasons::NONE));
+            let some = some.expect("the policy was asked");
+            let width = obs::feature_count(version).expect("a served version");
+            assert_eq!(some[..width], all[..width], "v{version}");
+            assert!(some[width..].iter().all(|&x| x == 0.0), "v{version}");
+        }
+        // A policy for an encoder this build does not serve is never asked; the drone holds.
+        let (status, seen) = tick_reading(2);
+        assert_eq!(
+            status,
+            Status::Holding(HoldReason::BadObservation(ObsError::UnknownVersion(2)))
+        );
+        assert_eq!(seen, None);
     }
 
     #[test]

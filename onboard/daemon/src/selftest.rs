@@ -208,8 +208,10 @@ pub fn run(model_file: Option<(&str, &[u8])>) -> Result<SelfTestReport, SelfTest
 
     let scene = Scene::builtin();
     let mut features = [0.0; FEATURES];
-    let frame =
-        obs::encode(&scene.input(0, max_speed), &mut features).map_err(|e| fail("encode", e))?;
+    // As the daemon encodes: only the features of the model's encoder version.
+    let version = actor.model().encoder_version;
+    let frame = obs::encode_version(&scene.input(0, max_speed), version, &mut features)
+        .map_err(|e| fail("encode", e))?;
     let action = actor.infer(Task::Driving, &features);
     let int8_error = reference.map(|r| {
         let exact = r.forward(Task::Driving, &features);

@@ -9,7 +9,7 @@ use core::panic::PanicInfo;
 
 use cortex_m_rt::entry;
 use skyherd_onboard::actor::Actor;
-use skyherd_onboard::obs::{FEATURES, encode};
+use skyherd_onboard::obs::{FEATURES, encode_version};
 use skyherd_onboard::safety::{self, Limits, Situation};
 use skyherd_onboard::wire::{
     MAX_MESSAGE, MAX_TARGETS, Reassembler, Uplink, WorldSnapshot, chunks, decode_uplink,
@@ -34,7 +34,9 @@ fn ground_snapshot(world: &mut WorldSnapshot) {
 
 fn decide(actor: &Actor<'_>, world: &WorldSnapshot, herder: usize) -> [f32; 3] {
     let mut features = [0.0f32; FEATURES];
-    let Ok(frame) = encode(&world.obs_input(herder), &mut features) else {
+    // Only the features the model's encoder version reads: an older model skips later passes.
+    let version = actor.model().encoder_version;
+    let Ok(frame) = encode_version(&world.obs_input(herder), version, &mut features) else {
         return [0.0; 3];
     };
     let velocity = frame.action_to_world(actor.infer(world.task, &features));
