@@ -43,11 +43,6 @@ impl EncoderBuffers {
         }
     }
 
-    /// The encoder version these buffers encode for.
-    pub fn encoder_version(&self) -> u16 {
-        self.encoder_version
-    }
-
     /// Copies `world` (usually `Env::observation()`) into the buffers.
     pub fn fill(&mut self, world: &World) {
         self.herders.clear();
@@ -96,8 +91,8 @@ impl EncoderBuffers {
         frame
     }
 
-    /// Encodes herder `own_index`'s features (those of [`EncoderBuffers::encoder_version`], the
-    /// rest 0) into `out`; returns its local frame, in which the actor's normalised action is
+    /// Encodes herder `own_index`'s features (those of the buffers' encoder version, the rest
+    /// 0) into `out`; returns its local frame, in which the actor's normalised action is
     /// read (`LocalFrame::action_to_world`).
     pub fn encode(
         &self,
