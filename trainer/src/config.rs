@@ -536,6 +536,12 @@ pub struct EvalConfig {
     /// The finalists' episode seeds are `final_seed_base + k`: apart from the check's and from
     /// every report set.
     pub final_seed_base: u64,
+    /// When set: the actors of the finalists checked at or after this share of
+    /// `training.env_steps` are also averaged, parameter by parameter, into one more candidate
+    /// for the end-of-run choice, scored on the same second set and kept only if it scores best
+    /// there (`skyherd_trainer::finalists::mean_members`). Learning is unchanged. Off (`None`)
+    /// by default.
+    pub average_finalists_from: Option<f64>,
 }
 
 impl EvalConfig {
@@ -590,6 +596,7 @@ impl Default for EvalConfig {
             finalists: 0,
             final_episodes: 48,
             final_seed_base: 6_000_000_000,
+            average_finalists_from: None,
             scenarios: [
                 (Task::Driving, 16, 4),
                 (Task::Driving, 64, 4),
@@ -1138,6 +1145,20 @@ impl TrainConfig {
                 );
             }
         }
+        if let Some(from) = e.average_finalists_from {
+            if e.finalists < 2 {
+                return bad(
+                    "eval.average_finalists_from",
+                    "averages finalists, so eval.finalists must be at least 2",
+                );
+            }
+            if !(0.0..1.0).contains(&from) {
+                return bad(
+                    "eval.average_finalists_from",
+                    "must be a share of the run in [0, 1)",
+                );
+            }
+        }
         let g = &self.curriculum.driving_goal_distance;
         if !(g.first_share > 0.0 && g.first_share <= 1.0) {
             return bad(
@@ -1682,6 +1703,31 @@ mod tests {
         assert_is_with_undone(&forty_third, &forty_first, |same| {
             same.encoder_version = DEFAULT_ENCODER_VERSION;
         });
+        // The forty-fourth: the forty-third whose end-of-run choice also weighs the mean of
+        // its finalists from the second half of the run.
+        let forty_fourth =
+            TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch44.toml"))
+                .expect("the forty-fourth config parses");
+        assert_eq!(forty_fourth.eval.average_finalists_from, Some(0.5));
+        assert_eq!(forty_third.eval.average_finalists_from, None);
+        assert_is_with_undone(&forty_fourth, &forty_third, |same| {
+            same.eval.average_finalists_from = None;
+        });
+        assert_each_edit_is_refused(
+            include_str!("../configs/mtddpg-scratch44.toml"),
+            &[
+                (
+                    "average_finalists_from = 0.5",
+                    "average_finalists_from = 1.0",
+                    "eval.average_finalists_from",
+                ),
+                (
+                    "finalists = 5 ",
+                    "finalists = 1 ",
+                    "eval.average_finalists_from",
+                ),
+            ],
+        );
         // The fortieth: the thirty-eighth with its perturbations kept at 0.1, no fall.
         let fortieth = TrainConfig::from_toml_str(include_str!("../configs/mtddpg-scratch40.toml"))
             .expect("the fortieth config parses");

@@ -82,6 +82,44 @@ pub fn choose(scores: &[(f64, f64)]) -> Option<usize> {
     })
 }
 
+/// The finalists averaged into one more candidate (`eval.average_finalists_from = from`):
+/// those checked at or after `from` of the run's `run_env_steps`, in step order. Empty when
+/// fewer than two qualify (one finalist is already a candidate of its own).
+///
+/// Why: late in a run the actor moves back and forth across a basin, and each checkpoint
+/// carries that step's noise (one is fast at small flocks and drops targets at sixteen, the
+/// next the other way); the mean of several sits nearer the basin's middle. Early finalists,
+/// from before the actor had learned what the late ones know, are left out.
+pub fn mean_members(finalists: &[Finalist], run_env_steps: u64, from: f64) -> Vec<u64> {
+    let mut members: Vec<u64> = finalists
+        .iter()
+        .map(|f| f.env_steps)
+        .filter(|&steps| steps as f64 >= from * run_env_steps as f64)
+        .collect();
+    members.sort_unstable();
+    if members.len() < 2 {
+        members.clear();
+    }
+    members
+}
+
+/// Where the mean of the finalists ([`mean_members`]) is saved: the latest member's checkpoint
+/// with its actor replaced by the mean.
+pub const MEAN_FILE: &str = "finalists-mean.safetensors";
+
+/// The line of [`CSV_FILE`] for the mean of `members`, its final-set score and whether it was
+/// chosen. Its first column names the members, so [`from_csv`] (which a resumed run reads)
+/// skips it.
+pub fn mean_csv_line(members: &[u64], score: (f64, f64), chosen: bool) -> String {
+    let names: Vec<String> = members.iter().map(u64::to_string).collect();
+    format!(
+        "mean of {},,,{},{},{chosen}\n",
+        names.join(" "),
+        score.0,
+        score.1
+    )
+}
+
 /// Where finalist `env_steps` of the run in `dir` is saved.
 pub fn file(dir: &Path, env_steps: u64) -> PathBuf {
     dir.join(format!("finalist-{env_steps}.safetensors"))
@@ -225,6 +263,29 @@ mod tests {
         assert_eq!(choose(&[(0.99, 2.5), (0.99, 2.5)]), Some(0));
         // Within half an episode in a hundred, time decides.
         assert_eq!(choose(&[(0.99, 2.5), (0.987, 2.2)]), Some(1));
+    }
+
+    #[test]
+    fn the_mean_takes_the_late_finalists_and_only_when_there_are_two() {
+        let list = vec![
+            f(900_000, 1.0, 2.0),
+            f(250_000, 1.0, 3.0),
+            f(650_000, 0.99, 2.1),
+            f(500_000, 0.99, 2.2),
+        ];
+        assert_eq!(
+            mean_members(&list, 1_000_000, 0.5),
+            [500_000, 650_000, 900_000]
+        );
+        assert_eq!(mean_members(&list, 1_000_000, 0.0).len(), 4);
+        // One late finalist is no mean.
+        assert!(mean_members(&list, 1_000_000, 0.8).is_empty());
+        assert!(mean_members(&[], 1_000_000, 0.5).is_empty());
+        // The mean's line does not read back as a finalist.
+        let mut text = to_csv(&list, None);
+        text.push_str(&mean_csv_line(&[650_000, 900_000], (0.99, 1.9), true));
+        assert!(text.ends_with("mean of 650000 900000,,,0.99,1.9,true\n"));
+        assert_eq!(from_csv(&text), list);
     }
 
     #[test]

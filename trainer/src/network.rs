@@ -381,6 +381,35 @@ impl MultiTaskMlp {
         }
     }
 
+    /// Whether `other` has this network's layers, layer for layer (what averaging needs).
+    pub fn same_shape(&self, other: &MultiTaskMlp) -> bool {
+        self.task_inputs.len() == other.task_inputs.len()
+            && self.shared.len() == other.shared.len()
+            && self.task_outputs.len() == other.task_outputs.len()
+            && self.layers().zip(other.layers()).all(|(a, b)| {
+                a.inputs == b.inputs
+                    && a.outputs == b.outputs
+                    && a.weights.len() == b.weights.len()
+                    && a.bias.len() == b.bias.len()
+            })
+    }
+
+    /// The parameter-wise mean of `nets` (weight averaging, as in stochastic weight averaging:
+    /// Izmailov et al. 2018, Nikishin et al. 2018 for RL). `None` when `nets` is empty or their
+    /// shapes differ. The output activation is the first network's.
+    pub fn mean_of(nets: &[&MultiTaskMlp]) -> Option<MultiTaskMlp> {
+        let (first, rest) = nets.split_first()?;
+        if !rest.iter().all(|n| first.same_shape(n)) {
+            return None;
+        }
+        let mut mean = (*first).clone();
+        // A running mean: after k networks, each has weight 1/k.
+        for (k, net) in rest.iter().enumerate() {
+            mean.soft_update_from(net, 1.0 / (k as f32 + 2.0));
+        }
+        Some(mean)
+    }
+
     /// Polyak averaging towards `source`: `self = tau * source + (1 - tau) * self`.
     pub fn soft_update_from(&mut self, source: &MultiTaskMlp, tau: f32) {
         for (t, s) in self.layers_mut().zip(source.layers()) {
@@ -554,6 +583,32 @@ mod tests {
             *l = Dense::new_uniform_bound(l.inputs, l.outputs, 0.8, &mut rng);
         }
         net
+    }
+
+    #[test]
+    fn the_mean_of_networks_is_their_parameter_wise_mean_and_shapes_must_agree() {
+        let nets = [1, 2, 3].map(|s| test_net(5, 3, Activation::Tanh, s));
+        let mean = MultiTaskMlp::mean_of(&[&nets[0], &nets[1], &nets[2]]).expect("same shapes");
+        for (((m, a), b), c) in mean
+            .layers()
+            .zip(nets[0].layers())
+            .zip(nets[1].layers())
+            .zip(nets[2].layers())
+        {
+            let all = |d: &Dense| d.weights.iter().chain(d.bias.iter()).copied().collect();
+            let (m, a, b, c): (Vec<f32>, Vec<f32>, Vec<f32>, Vec<f32>) =
+                (all(m), all(a), all(b), all(c));
+            for i in 0..m.len() {
+                let want = (a[i] + b[i] + c[i]) / 3.0;
+                assert!((m[i] - want).abs() < 1e-6, "{} against {want}", m[i]);
+            }
+        }
+        // One network is its own mean; none has none; another shape is refused.
+        assert_eq!(MultiTaskMlp::mean_of(&[&nets[1]]), Some(nets[1].clone()));
+        assert_eq!(MultiTaskMlp::mean_of(&[]), None);
+        let wider = test_net(6, 3, Activation::Tanh, 4);
+        assert_eq!(MultiTaskMlp::mean_of(&[&nets[0], &wider]), None);
+        assert!(!nets[0].same_shape(&wider));
     }
 
     #[test]

@@ -317,6 +317,146 @@ fn append_eval_rows(
 /// Each finalist's rows on the second episode set, as `eval.csv`'s columns.
 pub const FINALISTS_EVAL_FILE: &str = "finalists-eval.csv";
 
+/// The finalists' mean's rows on the second episode set (`eval.average_finalists_from`), as
+/// `eval.csv`'s columns, under its latest member's env steps.
+pub const FINALISTS_MEAN_EVAL_FILE: &str = "finalists-mean-eval.csv";
+
+/// What the end-of-run choice kept as `best.safetensors`.
+#[derive(Clone, Debug, PartialEq)]
+pub struct KeptFinalist {
+    /// The finalist's env steps; for the finalists' mean, its members'.
+    pub env_steps: Vec<u64>,
+    /// The training-time check's score; `None` for the mean, which the check never herded.
+    pub check: Option<(f64, f64)>,
+    /// The score on the second episode set.
+    pub final_score: (f64, f64),
+}
+
+/// The end-of-run choice of the run in `dir`: herds every finalist (and, with
+/// `eval.average_finalists_from`, the mean of the late ones' actors) on the second episode set
+/// and copies the best by that set to `best.safetensors`. The scores go to `finalists.csv`,
+/// each finalist's rows to `finalists-eval.csv` and the mean's to `finalists-mean-eval.csv`.
+/// `None` when there are no finalists. Also what `skyherd-trainer choose` runs on a finished
+/// run.
+pub fn choose_finalist(
+    config: &TrainConfig,
+    dir: &Path,
+    finalists: &[Finalist],
+    scenarios: &[EvalScenario],
+    observer: &mut dyn Observer,
+) -> Result<Option<KeptFinalist>, TrainError> {
+    if finalists.is_empty() {
+        return Ok(None);
+    }
+    let e = &config.eval;
+    let herd = |actor: &crate::network::MultiTaskMlp| {
+        evaluate_flat(scenarios, e.final_episodes, e.final_seed_base, || {
+            ActorPolicy::new(actor)
+        })
+    };
+    let mut scores = Vec::with_capacity(finalists.len() + 1);
+    let mut rows_of = Vec::with_capacity(finalists.len());
+    for f in finalists {
+        let c = checkpoint::load(&finalists::file(dir, f.env_steps))?;
+        let rows = herd(&c.agent.actor)?;
+        let s = score(&rows);
+        observer.note(&format!(
+            "finalist at {} env steps: check {:.1}% at {:.2}x, final set {:.1}% at {:.2}x",
+            f.env_steps,
+            100.0 * f.check.0,
+            f.check.1,
+            100.0 * s.0,
+            s.1
+        ));
+        scores.push(s);
+        rows_of.push((f.env_steps, c.progress.task_env_steps, rows));
+    }
+    let members = e.average_finalists_from.map_or_else(Vec::new, |from| {
+        finalists::mean_members(finalists, config.training.env_steps, from)
+    });
+    let mean_path = dir.join(finalists::MEAN_FILE);
+    let mean_eval_path = dir.join(FINALISTS_MEAN_EVAL_FILE);
+    remove_if_there(&mean_path)?;
+    remove_if_there(&mean_eval_path)?;
+    let mut mean_score = None;
+    if let Some(&latest) = members.last() {
+        let mut actors = Vec::with_capacity(members.len());
+        for &m in &members {
+            actors.push(checkpoint::load(&finalists::file(dir, m))?.agent.actor);
+        }
+        let refs: Vec<_> = actors.iter().collect();
+        let mean =
+            crate::network::MultiTaskMlp::mean_of(&refs).ok_or_else(|| TrainError::ActorShape {
+                path: finalists::file(dir, latest).display().to_string(),
+                reason: "the finalists' actors differ in shape, so they cannot be averaged"
+                    .to_owned(),
+            })?;
+        let mut c = checkpoint::load(&finalists::file(dir, latest))?;
+        c.agent.actor = mean;
+        checkpoint::save(&mean_path, &c)?;
+        let rows = herd(&c.agent.actor)?;
+        let s = score(&rows);
+        observer.note(&format!(
+            "mean of the finalists at {members:?} env steps: final set {:.1}% at {:.2}x",
+            100.0 * s.0,
+            s.1
+        ));
+        append_eval_rows(&mean_eval_path, latest, &c.progress.task_env_steps, &rows)?;
+        scores.push(s);
+        mean_score = Some(s);
+    }
+    let Some(chosen) = finalists::choose(&scores) else {
+        return Ok(None);
+    };
+    let kept = if let Some(f) = finalists.get(chosen) {
+        std::fs::copy(
+            finalists::file(dir, f.env_steps),
+            dir.join("best.safetensors"),
+        )
+        .map_err(ReportError::from)?;
+        KeptFinalist {
+            env_steps: vec![f.env_steps],
+            check: Some(f.check),
+            final_score: scores[chosen],
+        }
+    } else {
+        std::fs::copy(&mean_path, dir.join("best.safetensors")).map_err(ReportError::from)?;
+        KeptFinalist {
+            env_steps: members.clone(),
+            check: None,
+            final_score: scores[chosen],
+        }
+    };
+    observer.note(&format!(
+        "finalists: {} kept as best.safetensors ({:.1}% at {:.2}x on {} episodes a scenario it was not chosen on)",
+        if kept.check.is_some() {
+            format!("the one at {} env steps is", kept.env_steps[0])
+        } else {
+            format!("the mean of those at {:?} env steps is", kept.env_steps)
+        },
+        100.0 * kept.final_score.0,
+        kept.final_score.1,
+        e.final_episodes
+    ));
+    let mut csv = finalists::to_csv(finalists, Some((&scores[..finalists.len()], chosen)));
+    if let Some(s) = mean_score {
+        csv.push_str(&finalists::mean_csv_line(
+            &members,
+            s,
+            chosen == finalists.len(),
+        ));
+    }
+    write_atomically(&dir.join(finalists::CSV_FILE), &csv)?;
+    let eval_path = dir.join(FINALISTS_EVAL_FILE);
+    remove_if_there(&eval_path)?;
+    // In step order, so that each append keeps the rows before it.
+    rows_of.sort_by_key(|r| r.0);
+    for (env_steps, task_env_steps, rows) in &rows_of {
+        append_eval_rows(&eval_path, *env_steps, task_env_steps, rows)?;
+    }
+    Ok(Some(kept))
+}
+
 /// Removes the file at `path`; one already gone is fine.
 fn remove_if_there(path: &Path) -> Result<(), TrainError> {
     match std::fs::remove_file(path) {
@@ -659,67 +799,22 @@ impl Run<'_> {
         Ok(())
     }
 
-    /// The end-of-run choice: herds every finalist on the second episode set and copies the
-    /// best of them by that set to `best.safetensors`; the scores go to `finalists.csv` and
-    /// each one's rows to `finalists-eval.csv`.
+    /// The end-of-run choice ([`choose_finalist`]); the kept checkpoint's check score becomes
+    /// the run's best, as a run without finalists reports its best's (the finalists' mean was
+    /// never checked, so its final-set score stands in).
     fn choose_finalist(&mut self, observer: &mut dyn Observer) -> Result<(), TrainError> {
-        if self.finalists.is_empty() {
-            return Ok(());
-        }
-        let e = &self.config.eval;
         let dir = self.dir();
-        let mut scores = Vec::with_capacity(self.finalists.len());
-        let mut rows_of = Vec::with_capacity(self.finalists.len());
-        for f in &self.finalists {
-            let c = checkpoint::load(&finalists::file(&dir, f.env_steps))?;
-            let actor = &c.agent.actor;
-            let rows = evaluate_flat(
-                &self.eval_scenarios,
-                e.final_episodes,
-                e.final_seed_base,
-                || ActorPolicy::new(actor),
-            )?;
-            let s = score(&rows);
-            observer.note(&format!(
-                "finalist at {} env steps: check {:.1}% at {:.2}x, final set {:.1}% at {:.2}x",
-                f.env_steps,
-                100.0 * f.check.0,
-                f.check.1,
-                100.0 * s.0,
-                s.1
-            ));
-            scores.push(s);
-            rows_of.push((f.env_steps, c.progress.task_env_steps, rows));
-        }
-        let Some(chosen) = finalists::choose(&scores) else {
-            return Ok(());
-        };
-        let winner = self.finalists[chosen];
-        // The kept checkpoint's check score, as a run without finalists reports its best's.
-        self.progress.best_success = winner.check.0;
-        self.progress.best_time_ratio = winner.check.1;
-        std::fs::copy(
-            finalists::file(&dir, winner.env_steps),
-            dir.join("best.safetensors"),
-        )
-        .map_err(ReportError::from)?;
-        observer.note(&format!(
-            "finalists: the one at {} env steps is kept as best.safetensors ({:.1}% at {:.2}x on {} episodes a scenario it was not chosen on)",
-            winner.env_steps,
-            100.0 * scores[chosen].0,
-            scores[chosen].1,
-            e.final_episodes
-        ));
-        write_atomically(
-            &dir.join(finalists::CSV_FILE),
-            &finalists::to_csv(&self.finalists, Some((&scores, chosen))),
+        let kept = choose_finalist(
+            self.config,
+            &dir,
+            &self.finalists,
+            &self.eval_scenarios,
+            observer,
         )?;
-        let eval_path = dir.join(FINALISTS_EVAL_FILE);
-        remove_if_there(&eval_path)?;
-        // In step order, so that each append keeps the rows before it.
-        rows_of.sort_by_key(|r| r.0);
-        for (env_steps, task_env_steps, rows) in &rows_of {
-            append_eval_rows(&eval_path, *env_steps, task_env_steps, rows)?;
+        if let Some(kept) = kept {
+            let (success, time) = kept.check.unwrap_or(kept.final_score);
+            self.progress.best_success = success;
+            self.progress.best_time_ratio = time;
         }
         Ok(())
     }

@@ -7,8 +7,9 @@ use skyherd_trainer::checkpoint;
 use skyherd_trainer::config::TrainConfig;
 use skyherd_trainer::eval::EvalScenario;
 use skyherd_trainer::export::{export, parity, record_observations};
+use skyherd_trainer::network::MultiTaskMlp;
 use skyherd_trainer::report::read_log;
-use skyherd_trainer::train::{Quiet, train};
+use skyherd_trainer::train::{FINALISTS_MEAN_EVAL_FILE, Quiet, choose_finalist, train};
 
 fn tiny_config(dir: &std::path::Path) -> TrainConfig {
     TrainConfig::from_toml_str(&format!(
@@ -475,5 +476,65 @@ fn finalists_are_kept_and_one_is_chosen_on_the_second_set() {
             assert!(!plain.output_dir.join("finalists.csv").exists());
         }
     }
+    // The choice again on the finished run, with the mean of both finalists as a candidate
+    // (what `skyherd-trainer choose --average-finalists-from 0` does).
+    let listed = skyherd_trainer::finalists::from_csv(
+        &std::fs::read_to_string(dir.join("finalists.csv")).expect("finalists.csv"),
+    );
+    let scenarios: Vec<EvalScenario> = config.eval.scenario_list();
+    config.eval.average_finalists_from = Some(0.0);
+    config
+        .validate()
+        .expect("averaging two finalists is allowed");
+    let kept = choose_finalist(&config, &dir, &listed, &scenarios, &mut Quiet)
+        .expect("the choice runs")
+        .expect("something is kept");
+    let actors: Vec<_> = listed
+        .iter()
+        .map(|f| {
+            checkpoint::load(&skyherd_trainer::finalists::file(&dir, f.env_steps))
+                .expect("finalist")
+                .agent
+                .actor
+        })
+        .collect();
+    let mean_file = dir.join(skyherd_trainer::finalists::MEAN_FILE);
+    let mean = checkpoint::load(&mean_file).expect("the mean is saved");
+    let want = MultiTaskMlp::mean_of(&actors.iter().collect::<Vec<_>>()).expect("same shapes");
+    assert_eq!(mean.agent.actor, want);
+    let csv = std::fs::read_to_string(dir.join("finalists.csv")).expect("finalists.csv");
+    assert_eq!(csv.lines().count(), 1 + 3, "{csv}");
+    assert_eq!(
+        csv.lines().filter(|l| l.ends_with(",true")).count(),
+        1,
+        "{csv}"
+    );
+    let mean_line = csv.lines().last().expect("the mean's line");
+    assert!(mean_line.starts_with("mean of "), "{csv}");
+    // The finalists read back without the mean (a resumed run goes on with them alone).
+    assert_eq!(skyherd_trainer::finalists::from_csv(&csv), listed);
+    let best = std::fs::read(dir.join("best.safetensors")).expect("best");
+    if kept.check.is_none() {
+        assert!(mean_line.ends_with(",true"), "{csv}");
+        assert_eq!(best, std::fs::read(&mean_file).expect("mean"));
+        assert_eq!(kept.env_steps.len(), 2);
+    } else {
+        assert_eq!(
+            best,
+            std::fs::read(skyherd_trainer::finalists::file(&dir, kept.env_steps[0]))
+                .expect("finalist")
+        );
+    }
+    let mean_rows =
+        std::fs::read_to_string(dir.join(FINALISTS_MEAN_EVAL_FILE)).expect("the mean's rows");
+    assert_eq!(mean_rows.lines().count(), 1 + 2, "{mean_rows}");
+    // Without averaging, the choice is the finalists' alone again and the mean's files go.
+    config.eval.average_finalists_from = None;
+    let again = choose_finalist(&config, &dir, &listed, &scenarios, &mut Quiet)
+        .expect("the choice runs")
+        .expect("something is kept");
+    assert!(again.check.is_some());
+    assert!(!mean_file.exists());
+    assert!(!dir.join(FINALISTS_MEAN_EVAL_FILE).exists());
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -72,6 +72,11 @@ enum Command {
     /// `--gate`, exit non-zero unless every successful rule beats hovering and the rules rank
     /// by completion time.
     AuditReward(AuditRewardArgs),
+    /// Run the end-of-run choice again on a finished run's folder: its finalists (and, with
+    /// `--average-finalists-from` or the run's `eval.average_finalists_from`, the mean of the
+    /// late ones' actors) on the second episode set; the best becomes `best.safetensors`.
+    /// Learning is not touched: this is how a run trained before the mean existed gets it.
+    Choose(ChooseArgs),
     /// Read an ablation's runs (`<runs>/<arm>-seed<S>/eval.csv`, from `train --arm --seed`)
     /// and write its table, verdict and learning curves (`skyherd_trainer::ablation`).
     AblationReport(AblationReportArgs),
@@ -249,6 +254,17 @@ struct ExportArgs {
 }
 
 #[derive(clap::Args, Debug)]
+struct ChooseArgs {
+    /// The run's folder (holding `last.safetensors`, `finalists.csv` and the finalists).
+    #[arg(long)]
+    run: PathBuf,
+    /// Average the finalists checked at or after this share of the run's env steps into one
+    /// more candidate (overrides the run's config).
+    #[arg(long)]
+    average_finalists_from: Option<f64>,
+}
+
+#[derive(clap::Args, Debug)]
 struct PlotArgs {
     /// The run's `log.csv`.
     #[arg(long)]
@@ -375,6 +391,7 @@ fn main() -> Result<()> {
         Command::Distill(args) => run_distill(args),
         Command::Export(args) => run_export(args),
         Command::Plot(args) => run_plot(args),
+        Command::Choose(args) => run_choose(args),
         Command::Eval(args) => run_eval(args),
         Command::AuditReward(args) => run_audit_reward(args),
         Command::AblationReport(args) => {
@@ -607,6 +624,57 @@ fn run_export(args: ExportArgs) -> Result<()> {
         p.rms_vector,
         p.max_component
     );
+    Ok(())
+}
+
+fn run_choose(args: ChooseArgs) -> Result<()> {
+    let ChooseArgs {
+        run,
+        average_finalists_from,
+    } = args;
+    let last = run.join("last.safetensors");
+    let mut config = checkpoint::load(&last)
+        .with_context(|| format!("reading the run's config from {}", last.display()))?
+        .config;
+    if average_finalists_from.is_some() {
+        config.eval.average_finalists_from = average_finalists_from;
+    }
+    config.validate()?;
+    let csv = run.join(skyherd_trainer::finalists::CSV_FILE);
+    let text = std::fs::read_to_string(&csv)
+        .with_context(|| format!("reading the run's finalists from {}", csv.display()))?;
+    let finalists = skyherd_trainer::finalists::from_csv(&text);
+    if finalists.is_empty() {
+        bail!(
+            "{} names no finalist (was the run trained with eval.finalists?)",
+            csv.display()
+        );
+    }
+    let scenarios: Vec<EvalScenario> = config
+        .eval
+        .scenario_list()
+        .into_iter()
+        .filter(|s| config.training.tasks.contains(&s.task))
+        .collect();
+    let mut bar = Bar { bar: None };
+    let kept =
+        skyherd_trainer::train::choose_finalist(&config, &run, &finalists, &scenarios, &mut bar)?;
+    if let Some(kept) = kept {
+        outln!(
+            "kept {} as {}: {:.1}% at {:.2}x the bound on the second set",
+            if kept.check.is_some() {
+                format!("the finalist at {} env steps", kept.env_steps[0])
+            } else {
+                format!(
+                    "the mean of the finalists at {:?} env steps",
+                    kept.env_steps
+                )
+            },
+            run.join("best.safetensors").display(),
+            100.0 * kept.final_score.0,
+            kept.final_score.1
+        );
+    }
     Ok(())
 }
 
