@@ -6,7 +6,10 @@
 //! 100 % on the check now and then, and the fastest such actor wins). Re-scoring the top few on
 //! episodes the check has never seen takes that luck out of the choice; it changes no learning.
 //!
-//! The pure part (admission, the CSV) is here; the I/O (saving, loading, herding) is in
+//! With `eval.average_finalists_from`, the mean of the late finalists' actors ([`mean_members`],
+//! [`crate::network::MultiTaskMlp::mean_of`]) is one more candidate on the second set.
+//!
+//! The pure part (admission, the members of the mean, the CSV) is here; the I/O (saving, loading, herding) is in
 //! [`crate::train`].
 //!
 //! ```
