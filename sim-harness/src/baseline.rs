@@ -546,6 +546,18 @@ mod tests {
     use crate::{Env, Scenario, run_episode};
 
     #[test]
+    fn every_method_parses_from_its_name_and_an_unknown_name_lists_them() {
+        for method in Method::ALL {
+            assert_eq!(method.as_str().parse::<Method>(), Ok(method));
+        }
+        let err = "shepherd".parse::<Method>().unwrap_err();
+        assert!(err.contains("`shepherd`"), "{err}");
+        for method in Method::ALL {
+            assert!(err.contains(method.as_str()), "{err}");
+        }
+    }
+
+    #[test]
     fn round_the_flock_goes_straight_when_clear_and_round_when_not() {
         let centre = [0.0, 0.0];
         // The segment misses the disc: straight to the point.

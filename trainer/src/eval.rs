@@ -212,6 +212,39 @@ pub fn markdown_table(method: &str, rows: &[EvalRow]) -> String {
     s
 }
 
+/// The columns of [`csv_table`].
+pub const EVAL_TABLE_CSV_HEADER: &str =
+    "method,task,targets,herders,episodes,success_rate,mean_time_s,mean_time_ratio,mean_path_m";
+
+/// Rows as CSV lines (no header; see [`EVAL_TABLE_CSV_HEADER`]) at full precision, labelled with
+/// `method`: the table [`markdown_table`] rounds, for ratios between methods that rounding would
+/// move. A scenario with no success has empty time and path fields.
+pub fn csv_table(method: &str, rows: &[EvalRow]) -> String {
+    let field = |v: f64| {
+        if v.is_finite() {
+            v.to_string()
+        } else {
+            String::new()
+        }
+    };
+    let mut s = String::new();
+    for r in rows {
+        s.push_str(&format!(
+            "{},{},{},{},{},{},{},{},{}\n",
+            method,
+            task_name(r.scenario.task),
+            r.scenario.targets,
+            r.scenario.herders,
+            r.episodes,
+            r.success_rate,
+            field(r.mean_time_s),
+            field(r.mean_time_ratio),
+            field(r.mean_path_length),
+        ));
+    }
+    s
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -238,6 +271,38 @@ mod tests {
         assert!(better(faster_sure, slow_but_sure));
         assert!(!better(slow_but_sure, faster_sure));
         assert_eq!(score(&[row(0.0, f64::NAN)]).1, 20.0);
+    }
+
+    #[test]
+    fn the_csv_table_keeps_full_precision_and_leaves_a_failed_scenario_empty() {
+        let row = |task, success_rate, ratio: f64| EvalRow {
+            scenario: EvalScenario {
+                task,
+                targets: 4,
+                herders: 4,
+            },
+            episodes: 100,
+            success_rate,
+            mean_time_s: if ratio.is_finite() { 157.25 } else { f64::NAN },
+            mean_time_ratio: ratio,
+            mean_path_length: if ratio.is_finite() { 2339.5 } else { f64::NAN },
+        };
+        let csv = csv_table(
+            "int8 (quantized)",
+            &[
+                row(Task::Collecting, 0.98, 2.0831234567),
+                row(Task::Driving, 0.0, f64::NAN),
+            ],
+        );
+        assert_eq!(
+            csv,
+            "int8 (quantized),collecting,4,4,100,0.98,157.25,2.0831234567,2339.5\n\
+             int8 (quantized),driving,4,4,100,0,,,\n"
+        );
+        assert_eq!(
+            EVAL_TABLE_CSV_HEADER.split(',').count(),
+            csv.lines().next().unwrap().split(',').count()
+        );
     }
 
     #[test]

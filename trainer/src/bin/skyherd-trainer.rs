@@ -22,7 +22,9 @@ use skyherd_trainer::audit::{Candidate, audit, gate, markdown as audit_markdown}
 use skyherd_trainer::checkpoint;
 use skyherd_trainer::config::TrainConfig;
 use skyherd_trainer::distill::{DistillConfig, distill};
-use skyherd_trainer::eval::{EvalScenario, evaluate_flat, markdown_table};
+use skyherd_trainer::eval::{
+    EVAL_TABLE_CSV_HEADER, EvalRow, EvalScenario, csv_table, evaluate_flat, markdown_table,
+};
 use skyherd_trainer::export::{calibration_scenarios, export, parity, record_observations};
 use skyherd_trainer::policy::ActorPolicy;
 use skyherd_trainer::report::read_log;
@@ -288,6 +290,14 @@ struct EvalArgs {
     /// Also run the rule-based baselines (every `skyherd_sim::baseline::Method`).
     #[arg(long)]
     baselines: bool,
+    /// Also run these rules only (comma-separated names, e.g. `lama,farthest`); with
+    /// `--baselines` every rule runs anyway.
+    #[arg(long, value_delimiter = ',')]
+    rules: Vec<String>,
+    /// Also write every table's rows at full precision to this CSV file (the Markdown table
+    /// rounds the time ratio to two decimals).
+    #[arg(long)]
+    csv: Option<PathBuf>,
     /// Also run this float actor (the export's `--actor-out`, or a checkpoint).
     #[arg(long)]
     actor: Option<PathBuf>,
@@ -691,10 +701,23 @@ fn run_eval(args: EvalArgs) -> Result<()> {
         episodes,
         seed_base,
         baselines,
+        rules,
+        csv,
         actor: float_actor,
         scenarios,
         threads,
     } = args;
+    let rules: Vec<Method> = if baselines {
+        Method::ALL.to_vec()
+    } else {
+        rules
+            .iter()
+            .map(|name| {
+                name.parse::<Method>()
+                    .map_err(|e| anyhow::anyhow!("--rules: {e}"))
+            })
+            .collect::<Result<_>>()?
+    };
     let float_actor = float_actor
         .map(|p| checkpoint::load_actor(&p))
         .transpose()?;
@@ -728,22 +751,37 @@ fn run_eval(args: EvalArgs) -> Result<()> {
     let name = model
         .file_stem()
         .map_or_else(|| "model".to_owned(), |s| s.to_string_lossy().into_owned());
+    // Opened before the episodes run, so a path that cannot be written fails at once.
+    let csv_file = csv
+        .as_ref()
+        .map(|path| {
+            std::fs::File::create(path).with_context(|| format!("creating {}", path.display()))
+        })
+        .transpose()?;
+    let mut csv_text = format!("{EVAL_TABLE_CSV_HEADER}\n");
+    let mut table = |method: &str, rows: &[EvalRow]| -> Result<()> {
+        out!("{}", markdown_table(method, rows));
+        csv_text.push_str(&csv_table(method, rows));
+        Ok(())
+    };
     pool.install(|| -> Result<()> {
         let rows = evaluate_flat(&scenarios, episodes, seed_base, || ActorPolicy::new(actor))?;
-        out!("{}", markdown_table(&format!("{name} (quantized)"), &rows));
+        table(&format!("{name} (quantized)"), &rows)?;
         if let Some(float) = &float_actor {
             let rows = evaluate_flat(&scenarios, episodes, seed_base, || ActorPolicy::new(float))?;
-            out!("{}", markdown_table(&format!("{name} (float)"), &rows));
+            table(&format!("{name} (float)"), &rows)?;
         }
-        if baselines {
-            for method in Method::ALL {
-                let rows =
-                    evaluate_flat(&scenarios, episodes, seed_base, || RulePolicy::new(method))?;
-                out!("{}", markdown_table(method.as_str(), &rows));
-            }
+        for &method in &rules {
+            let rows = evaluate_flat(&scenarios, episodes, seed_base, || RulePolicy::new(method))?;
+            table(method.as_str(), &rows)?;
         }
         Ok(())
     })?;
+    if let (Some(mut file), Some(path)) = (csv_file, csv) {
+        use std::io::Write as _;
+        file.write_all(csv_text.as_bytes())
+            .with_context(|| format!("writing {}", path.display()))?;
+    }
     Ok(())
 }
 
