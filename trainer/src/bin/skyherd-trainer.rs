@@ -745,19 +745,23 @@ fn run_eval(args: EvalArgs) -> Result<()> {
     let pool = rayon::ThreadPoolBuilder::new()
         .num_threads(threads)
         .build()?;
+    // The rows go to a `.partial` file beside the CSV, created before the episodes run (so a
+    // folder that cannot be written fails at once) and renamed over it at the end (so an earlier
+    // file at that path survives a failed evaluation).
+    let csv_file = csv
+        .map(|path| -> Result<_> {
+            let partial = path.with_extension("partial");
+            let file = std::fs::File::create(&partial)
+                .with_context(|| format!("creating {}", partial.display()))?;
+            Ok((file, partial, path))
+        })
+        .transpose()?;
     outln!("| scenario | method | episodes | success | time (s) | time / bound | path (m) |");
     outln!("|---|---|---|---|---|---|---|");
     // Rows are labelled with the model file's name (`mtddpg-v3` for models/mtddpg-v3.skym).
     let name = model
         .file_stem()
         .map_or_else(|| "model".to_owned(), |s| s.to_string_lossy().into_owned());
-    // Opened before the episodes run, so a path that cannot be written fails at once.
-    let csv_file = csv
-        .as_ref()
-        .map(|path| {
-            std::fs::File::create(path).with_context(|| format!("creating {}", path.display()))
-        })
-        .transpose()?;
     let mut csv_text = format!("{EVAL_TABLE_CSV_HEADER}\n");
     let mut table = |method: &str, rows: &[EvalRow]| -> Result<()> {
         out!("{}", markdown_table(method, rows));
@@ -777,10 +781,12 @@ fn run_eval(args: EvalArgs) -> Result<()> {
         }
         Ok(())
     })?;
-    if let (Some(mut file), Some(path)) = (csv_file, csv) {
+    if let Some((mut file, partial, path)) = csv_file {
         use std::io::Write as _;
         file.write_all(csv_text.as_bytes())
-            .with_context(|| format!("writing {}", path.display()))?;
+            .with_context(|| format!("writing {}", partial.display()))?;
+        std::fs::rename(&partial, &path)
+            .with_context(|| format!("renaming {} to {}", partial.display(), path.display()))?;
     }
     Ok(())
 }
